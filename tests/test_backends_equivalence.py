@@ -1,0 +1,195 @@
+"""The same scene spec must behave the same on every backend (issue 3, 'Equivalence')."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+import physint_backends as pb
+from physint_backends import Body, Camera, Scene, SpecError
+
+BACKENDS = ["mujoco", "pybullet", "robosuite"]
+CUBE = 0.06  # edge of the stacked blocks, metres
+
+
+def stack(offsets, shapes=None):
+    """A single-stranded stack of cubes, each shifted in x by ``offsets[i]`` from the one below."""
+    bodies, x = [], 0.0
+    for i, dx in enumerate(offsets):
+        x += dx
+        bodies.append(Body.box(f"b{i}", (CUBE, CUBE, CUBE), pos=(x, 0.0, CUBE * (i + 0.5)), rgba=(0.8, 0.2 * i, 0.2, 1)))
+    return bodies
+
+
+def displacement(sim, name, start):
+    pos, _ = sim.get_pose(name)
+    return float(np.linalg.norm(pos - start))
+
+
+@pytest.fixture(params=BACKENDS)
+def backend(request):
+    return request.param
+
+
+def test_centred_stack_stands_for_two_seconds(backend):
+    scene = Scene(bodies=stack([0.0, 0.0, 0.0]))
+    with pb.make(backend, scene) as sim:
+        start = {n: sim.get_pose(n)[0] for n in sim.body_names}
+        sim.advance(2.0)
+        assert sim.time == pytest.approx(2.0, abs=0.01)
+        for name in sim.body_names:
+            assert displacement(sim, name, start[name]) < 0.005, name
+
+
+def test_stack_with_com_outside_support_falls(backend):
+    # the top two blocks overhang by 0.7 and 0.7 of an edge: their COM lies outside block 0's top
+    scene = Scene(bodies=stack([0.0, 0.7 * CUBE * 0.75, 0.7 * CUBE * 0.75]))
+    with pb.make(backend, scene) as sim:
+        top_start = sim.get_pose("b2")[0]
+        sim.advance(2.0)
+        assert sim.get_pose("b2")[0][2] < top_start[2] - CUBE / 2
+
+
+@pytest.mark.parametrize("support", ["sphere", "lying_cylinder"])
+def test_block_on_curved_surface_falls(backend, support):
+    if support == "sphere":
+        base = Body.sphere("base", 0.04, pos=(0, 0, 0.04))
+        top_z = 0.08 + CUBE / 2
+    else:
+        base = Body.cylinder("base", 0.03, 0.12, pos=(0, 0, 0.03), quat=(math.cos(math.pi / 4), math.sin(math.pi / 4), 0, 0))
+        top_z = 0.06 + CUBE / 2
+    block = Body.box("block", (CUBE, CUBE, CUBE), pos=(0.004, 0.003, top_z))
+    with pb.make(backend, Scene(bodies=[base, block])) as sim:
+        sim.advance(2.0)
+        assert sim.get_pose("block")[0][2] < top_z - CUBE / 3
+
+
+def test_dropped_sphere_time_to_ground(backend):
+    h, r = 1.0, 0.02
+    scene = Scene(bodies=[Body.sphere("ball", r, pos=(0, 0, h + r))], timestep=0.001)
+    with pb.make(backend, scene) as sim:
+        t_contact = None
+        while sim.time < 1.0:
+            sim.step(1)
+            if sim.get_pose("ball")[0][2] <= r + 1e-3 or "ground" in sim.contacts("ball"):
+                t_contact = sim.time
+                break
+        assert t_contact is not None
+        assert t_contact == pytest.approx(math.sqrt(2 * h / 9.81), rel=0.02)
+
+
+def test_segmentation_masks_agree_with_projection(backend):
+    cam = Camera("front", pos=(0.7, 0.0, 0.35), lookat=(0.0, 0.0, 0.1), fovy=45, width=64, height=64)
+    bodies = [Body.box("red", (0.08, 0.08, 0.08), pos=(0.0, -0.1, 0.04), rgba=(1, 0, 0, 1)),
+              Body.sphere("blue", 0.04, pos=(0.0, 0.12, 0.04), rgba=(0, 0, 1, 1))]
+    with pb.make(backend, Scene(bodies=bodies, cameras=[cam])) as sim:
+        frame = sim.render("front", rgb=True, depth=True, segmentation=True)
+    assert frame.rgb.shape == (64, 64, 3) and frame.rgb.dtype == np.uint8
+    assert frame.depth.shape == (64, 64)
+    seg = frame.segmentation
+    for index, body in enumerate(bodies):
+        mask = seg == index
+        assert mask.sum() > 20, body.name
+        v, u = np.nonzero(mask)
+        expected = cam.project(np.asarray(body.pos))[0]
+        assert abs(u.mean() - expected[0]) < 3 and abs(v.mean() - expected[1]) < 3, body.name
+    # the depth of the red box's centre pixel is about its distance along the camera axis
+    u, v = np.round(cam.project(np.asarray(bodies[0].pos))[0]).astype(int)
+    axis = np.subtract(cam.lookat, cam.pos) / np.linalg.norm(np.subtract(cam.lookat, cam.pos))
+    expected_depth = float(np.dot(np.subtract(bodies[0].pos, cam.pos), axis)) - 0.04
+    assert frame.depth[v, u] == pytest.approx(expected_depth, abs=0.03)
+
+
+def test_bad_input_leaves_state_unchanged(backend):
+    scene = Scene(bodies=[Body.box("box", (0.1, 0.1, 0.1), pos=(0, 0, 0.05))], cameras=[Camera("cam")])
+    with pb.make(backend, scene) as sim:
+        before = sim.get_pose("box")
+        with pytest.raises(SpecError, match="pos"):
+            sim.set_pose("box", (0, float("nan"), 0))
+        with pytest.raises(SpecError, match="no body named 'boks'"):
+            sim.get_pose("boks")
+        with pytest.raises(SpecError, match="no camera named"):
+            sim.render("nope")
+        after = sim.get_pose("box")
+        assert np.allclose(before[0], after[0]) and np.allclose(before[1], after[1])
+
+
+def test_freeze_holds_a_body_in_the_air(backend):
+    scene = Scene(bodies=[Body.box("box", (0.05, 0.05, 0.05), pos=(0, 0, 0.5))])
+    with pb.make(backend, scene) as sim:
+        sim.freeze("box")
+        sim.advance(0.5)
+        assert sim.get_pose("box")[0][2] == pytest.approx(0.5, abs=1e-3)
+        sim.unfreeze("box")
+        sim.advance(0.5)
+        assert sim.get_pose("box")[0][2] < 0.4
+
+
+def test_set_pose_and_velocity_and_reset(backend):
+    scene = Scene(bodies=[Body.sphere("ball", 0.03, pos=(0, 0, 0.03))])
+    with pb.make(backend, scene) as sim:
+        sim.set_pose("ball", (0.2, 0.1, 0.5))
+        assert np.allclose(sim.get_pose("ball")[0], (0.2, 0.1, 0.5), atol=1e-6)
+        sim.set_velocity("ball", (1.0, 0.0, 0.0))
+        assert sim.get_velocity("ball")[0][0] == pytest.approx(1.0, abs=1e-6)
+        sim.advance(0.1)
+        assert sim.get_pose("ball")[0][0] > 0.25
+        sim.reset()
+        assert sim.time == 0.0
+        assert np.allclose(sim.get_pose("ball")[0], (0, 0, 0.03), atol=1e-6)
+
+
+# -- the Panda robot ------------------------------------------------------------------------
+
+def robot_scene(with_cube=True):
+    robot = pb.RobotSpec()
+    table = robot.table_height
+    bodies = [Body.box("cube", (0.04, 0.04, 0.04), pos=(0.0, 0.0, table + 0.02), mass=0.05, rgba=(1, 0, 0, 1))] if with_cube else []
+    return Scene(bodies=bodies, robot=robot,
+                 cameras=[Camera("front", pos=(0.9, 0.0, table + 0.5), lookat=(0.0, 0.0, table), width=64, height=64)])
+
+
+def test_panda_moves_ten_centimetres_in_x(backend):
+    with pb.make(backend, robot_scene(with_cube=False)) as sim:
+        start = sim.robot.state()
+        assert start.joints.shape == (7,) and start.ee_pos.shape == (3,)
+        target = start.ee_pos + np.array([0.10, 0.0, 0.0])
+        steps = int(1.0 * sim.robot.spec.control_hz)
+        for _ in range(steps):
+            delta = np.clip(target - sim.robot.state().ee_pos, -0.05, 0.05)
+            state = sim.robot.act([*delta, 0])
+        moved = state.ee_pos - start.ee_pos
+        assert moved[0] == pytest.approx(0.10, abs=0.01)
+        assert abs(moved[1]) < 0.01 and abs(moved[2]) < 0.01
+
+
+def test_panda_grasps_and_lifts_a_cube(backend):
+    with pb.make(backend, robot_scene()) as sim:
+        table = sim.robot.spec.table_height
+        cube = sim.get_pose("cube")[0]
+
+        def go(target, gripper, steps):
+            for _ in range(steps):
+                delta = np.clip(np.asarray(target) - sim.robot.state().ee_pos, -0.05, 0.05)
+                sim.robot.act([*delta, gripper])
+
+        go(cube + [0, 0, 0.10], -1, 25)
+        go(cube + [0, 0, 0.0], -1, 25)
+        go(cube, 1, 15)
+        assert sim.robot.touching("cube", "fingers")
+        go(cube + [0, 0, 0.15], 0, 30)
+        assert sim.get_pose("cube")[0][2] > table + 0.02 + 0.08
+        assert sim.robot.state().gripper_opening < 0.05
+
+
+def test_bad_action_is_rejected_without_stepping(backend):
+    with pb.make(backend, robot_scene(with_cube=False)) as sim:
+        t = sim.time
+        for bad in ([0, 0, 0], [0, 0, float("nan"), 0], [0, 0, 0, 0.5], "left"):
+            with pytest.raises(SpecError, match="action"):
+                sim.robot.act(bad)
+        assert sim.time == t
+        frame = sim.render("front", segmentation=True)
+        assert (frame.segmentation == -2).sum() > 0  # the robot is visible and labelled -2
