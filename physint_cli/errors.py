@@ -24,9 +24,12 @@ class RunFailure(RuntimeError):
 
 def suggest(name: str, choices: Iterable[str]) -> str:
     """' (did you mean X?)' for the closest of ``choices``, or ''."""
-    close = difflib.get_close_matches(str(name), list(choices), n=2, cutoff=0.5)
+    choices = list(choices)
+    close = difflib.get_close_matches(str(name), choices, n=1, cutoff=0.5)
     if not close:
         return ""
+    # a second suggestion only when it is about as close as the first
+    close += [c for c in difflib.get_close_matches(str(name), choices, n=2, cutoff=0.8) if c not in close][:1]
     return " (did you mean " + " or ".join(repr(c) for c in close) + "?)"
 
 

@@ -1,0 +1,105 @@
+"""Writing run artifacts: PNG images and plots, MP4/GIF videos, rerun recordings."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any, Iterable
+
+import numpy as np
+
+
+def _tmp(path: Path) -> Path:
+    return path.with_name(f".{path.stem}.tmp-{os.getpid()}{path.suffix}")
+
+
+def save_image(path: Path, image: np.ndarray) -> Path:
+    """Save a uint8 HxW(x3) image as PNG, atomically."""
+    import imageio.v3 as iio
+
+    path = Path(path)
+    tmp = _tmp(path)
+    iio.imwrite(tmp, np.asarray(image, dtype=np.uint8), extension=".png")
+    os.replace(tmp, path)
+    return path
+
+
+def save_video(path: Path, frames: Iterable[np.ndarray], fps: float = 25.0) -> Path:
+    """Save frames as MP4 (H.264 through imageio-ffmpeg) or GIF, by the file's suffix."""
+    import imageio.v3 as iio
+
+    path = Path(path)
+    frames = [np.asarray(f, dtype=np.uint8) for f in frames]
+    if not frames:
+        raise ValueError("save_video: no frames")
+    tmp = _tmp(path)
+    if path.suffix == ".gif":
+        iio.imwrite(tmp, np.stack(frames), extension=".gif", duration=1000.0 / fps, loop=0)
+    else:
+        # H.264 needs even sizes; pad by one pixel where needed
+        h, w = frames[0].shape[:2]
+        pad = ((0, h % 2), (0, w % 2), (0, 0))
+        frames = [np.pad(f, pad[: f.ndim], mode="edge") for f in frames]
+        iio.imwrite(tmp, np.stack(frames), extension=".mp4", fps=fps, codec="libx264", macro_block_size=1)
+    os.replace(tmp, path)
+    return path
+
+
+def save_plot(path: Path, draw, figsize=(5, 3.5)) -> Path:
+    """``draw(ax)`` on a matplotlib axis, saved as PNG (headless Agg backend)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    path = Path(path)
+    fig, ax = plt.subplots(figsize=figsize, dpi=100)
+    try:
+        draw(ax)
+        fig.tight_layout()
+        tmp = _tmp(path)
+        fig.savefig(tmp, format="png")
+        os.replace(tmp, path)
+    finally:
+        plt.close(fig)
+    return path
+
+
+class Recording:
+    """A rerun recording written to an .rrd file (``physint view`` opens it)."""
+
+    def __init__(self, path: Path, name: str):
+        import rerun as rr
+
+        self.rr = rr
+        self.path = Path(path)
+        self.stream = rr.RecordingStream(f"physint/{name}")
+        self.stream.save(str(self.path))
+
+    def time(self, step: int | None = None, seconds: float | None = None) -> None:
+        if step is not None:
+            self.stream.set_time("step", sequence=int(step))
+        if seconds is not None:
+            self.stream.set_time("sim_time", duration=float(seconds))
+
+    def image(self, entity: str, image: np.ndarray) -> None:
+        self.stream.log(entity, self.rr.Image(np.asarray(image)))
+
+    def scalar(self, entity: str, value: float) -> None:
+        self.stream.log(entity, self.rr.Scalars([float(value)]))
+
+    def points(self, entity: str, points: np.ndarray, **kw: Any) -> None:
+        self.stream.log(entity, self.rr.Points3D(np.asarray(points), **kw))
+
+    def text(self, entity: str, text: str) -> None:
+        self.stream.log(entity, self.rr.TextDocument(text), static=True)
+
+    def close(self) -> None:
+        self.stream.flush()
+        self.stream.disconnect()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()

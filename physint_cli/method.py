@@ -1,0 +1,145 @@
+"""The Method interface a plugin implements, and the Context each verb receives.
+
+A method is the software form of one thesis chapter. It declares its config and presets, the
+backends and scenes it supports, and implements four verbs. Dataset generation and batch
+evaluation are split into *work units* so the core can run them in local processes or on Ray;
+the method only says how to make the units and how to do one.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, ClassVar
+
+import numpy as np
+
+from .errors import BadInput
+
+
+@dataclass
+class Unit:
+    """One independent piece of work (a dataset shard, a batch of evaluation episodes)."""
+
+    split: str
+    index: int
+    count: int
+    seed: int
+    params: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def name(self) -> str:
+        return f"{self.split}-{self.index:05d}"
+
+
+def unit_seed(seed: int, *keys: int | str) -> int:
+    """A seed for one unit that depends only on the base seed and the unit's identity."""
+    words = [seed] + [k if isinstance(k, int) else int.from_bytes(k.encode()[:8].ljust(8, b"\0"), "little") for k in keys]
+    return int(np.random.SeedSequence(words).generate_state(1)[0])
+
+
+def split_units(counts: dict[str, int], per_unit: int, seed: int, **params: Any) -> list[Unit]:
+    """Cut ``{split: n_items}`` into units of at most ``per_unit`` items with deterministic seeds."""
+    units = []
+    for split, total in counts.items():
+        for index, start in enumerate(range(0, total, max(1, per_unit))):
+            n = min(per_unit, total - start)
+            units.append(Unit(split, index, n, unit_seed(seed, split, index), {"start": start, **params}))
+    return units
+
+
+@dataclass
+class Context:
+    """What a verb is run with. Picklable, so work units can run in other processes."""
+
+    method: str
+    config: Any
+    preset: str
+    backend: str
+    scene: str
+    seed: int = 0
+    device: str = "cpu"
+    workers: int = 1
+    ray: str | None = None
+    data: Path | None = None  # dataset directory (train, eval)
+    run: Path | None = None  # this verb's run directory
+    source_run: Path | None = None  # the trained run (eval, deploy)
+    options: dict[str, Any] = field(default_factory=dict)  # verb options: model, task, target, ...
+    quiet: bool = False
+
+    def log(self, message: str) -> None:
+        if not self.quiet:
+            print(message, file=sys.stderr, flush=True)
+
+    def make_sim(self, scene: Any, backend: str | None = None):
+        """A live simulation of a backend-neutral scene on this context's (or another) backend."""
+        from .plugins import get_plugins
+
+        return get_plugins().backend(backend or self.backend).make(scene)
+
+    def map(self, fn, units: list[Unit], description: str = "working") -> list[Any]:
+        """Run ``fn(context, unit)`` over units with --workers/--ray; results in unit order."""
+        from .parallel import map_units
+
+        return map_units(fn, self, units, description=description)
+
+    def with_(self, **changes: Any) -> Context:
+        return dataclasses.replace(self, **changes)
+
+
+class Method:
+    """Base class for a method plugin. Subclass it and register an instance in ``register_methods``."""
+
+    name: ClassVar[str] = ""
+    description: ClassVar[str] = ""
+    chapter: ClassVar[str] = ""  # e.g. "Chapter 3, ShapeStacks"
+    config_class: ClassVar[type] = object
+    presets: ClassVar[dict[str, dict[str, Any]]] = {"tiny": {}, "small": {}, "paper": {}}
+    backends: ClassVar[tuple[str, ...]] = ("mujoco",)
+    scenes: ClassVar[tuple[str, ...]] = ("default",)
+    default_model: ClassVar[str | None] = None
+    plugin: str = ""
+
+    # -- dataset ------------------------------------------------------------------------------
+    def dataset_units(self, ctx: Context) -> list[Unit]:
+        """The shards to generate: one Unit each (use :func:`split_units`)."""
+        raise NotImplementedError
+
+    def generate(self, ctx: Context, unit: Unit) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        """Make one shard: ``({field: array with leading dim = n records}, stats)``."""
+        raise NotImplementedError
+
+    def summarize_dataset(self, ctx: Context, stats: list[dict[str, Any]]) -> dict[str, Any]:
+        """Combine per-shard stats into the manifest's ``stats`` (e.g. an agreement rate)."""
+        out: dict[str, Any] = {}
+        for s in stats:
+            for k, v in s.items():
+                if isinstance(v, (int, float)):
+                    out[k] = out.get(k, 0) + v
+        return out
+
+    # -- train / eval / deploy --------------------------------------------------------------------
+    def train(self, ctx: Context) -> dict[str, Any]:
+        """Train into ``ctx.run`` from ``ctx.data``; return final metrics."""
+        raise NotImplementedError
+
+    def evaluate(self, ctx: Context) -> dict[str, Any]:
+        """Evaluate the trained run ``ctx.source_run``; return metrics."""
+        raise NotImplementedError
+
+    def deploy(self, ctx: Context) -> dict[str, Any]:
+        """Use the trained run ``ctx.source_run`` for its downstream task; return the outcome."""
+        raise NotImplementedError
+
+    # -- helpers ------------------------------------------------------------------------------
+    def check_backend(self, backend: str) -> None:
+        if backend not in self.backends:
+            raise BadInput(f"method {self.name!r} does not support backend {backend!r}; supported: {', '.join(self.backends)}")
+
+    def check_scene(self, scene: str) -> None:
+        if scene not in self.scenes:
+            from .errors import unknown
+
+            raise BadInput(f"method {self.name!r}: {unknown('scene', scene, self.scenes)}")

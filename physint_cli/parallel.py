@@ -1,0 +1,94 @@
+"""Running work units inline, in local processes (``--workers N``) or on Ray (``--ray ADDRESS``).
+
+``fn(context, unit)`` must be a module-level function so it can travel to other processes;
+results come back in unit order. Ctrl-C stops the pool; finished units have already been
+written by their workers, so rerunning resumes.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import signal
+import sys
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from typing import Any, Callable
+
+from .errors import BadInput
+
+
+def progress_bar(quiet: bool = False):
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+
+    return Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                    TimeRemainingColumn(), console=Console(stderr=True), transient=False, disable=quiet)
+
+
+def _worker_init() -> None:
+    # the parent handles Ctrl-C and stops the pool; workers must not print tracebacks for it
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def map_units(fn: Callable[[Any, Any], Any], ctx: Any, units: list[Any], description: str = "working") -> list[Any]:
+    if not units:
+        return []
+    if ctx.ray:
+        return _map_ray(fn, ctx, units, description)
+    workers = max(1, int(ctx.workers or 1))
+    results: list[Any] = [None] * len(units)
+    with progress_bar(ctx.quiet) as progress:
+        task = progress.add_task(description, total=len(units))
+        if workers == 1 or len(units) == 1:
+            for i, unit in enumerate(units):
+                results[i] = fn(ctx, unit)
+                progress.advance(task)
+            return results
+        pool = ProcessPoolExecutor(max_workers=min(workers, len(units)), mp_context=multiprocessing.get_context("spawn"),
+                                   initializer=_worker_init)
+        try:
+            pending = {pool.submit(fn, ctx, unit): i for i, unit in enumerate(units)}
+            while pending:
+                done, _ = wait(pending, return_when=FIRST_COMPLETED)
+                for fut in done:
+                    results[pending.pop(fut)] = fut.result()
+                    progress.advance(task)
+        except BaseException:
+            pool.shutdown(wait=False, cancel_futures=True)
+            for proc in list(getattr(pool, "_processes", {}).values()):
+                proc.terminate()
+            raise
+        pool.shutdown(wait=True)
+    return results
+
+
+def _map_ray(fn, ctx, units, description):
+    try:
+        import ray
+    except ImportError:
+        raise BadInput("--ray needs Ray: pip install 'physint[ray]'") from None
+    address = None if ctx.ray in ("local", "") else ctx.ray
+    try:
+        if not ray.is_initialized():
+            ray.init(address=address, ignore_reinit_error=True, log_to_driver=False, include_dashboard=False,
+                     configure_logging=False)
+    except (ConnectionError, ValueError, RuntimeError) as exc:
+        raise BadInput(f"--ray {ctx.ray}: cannot connect to a Ray cluster ({str(exc).splitlines()[0]})") from None
+    remote = ray.remote(fn)
+    refs = [remote.remote(ctx, unit) for unit in units]
+    results: list[Any] = [None] * len(units)
+    index = {ref: i for i, ref in enumerate(refs)}
+    with progress_bar(ctx.quiet) as progress:
+        task = progress.add_task(f"{description} (ray)", total=len(units))
+        pending = list(refs)
+        try:
+            while pending:
+                done, pending = ray.wait(pending, num_returns=1)
+                for ref in done:
+                    results[index[ref]] = ray.get(ref)
+                    progress.advance(task)
+        except KeyboardInterrupt:
+            for ref in pending:
+                ray.cancel(ref, force=True)
+            raise
+    print(f"ran {len(units)} units on Ray at {ctx.ray}", file=sys.stderr)
+    return results

@@ -1,0 +1,130 @@
+"""Run directories and the physint home.
+
+Every train, eval and deploy writes a run directory::
+
+    run.json          method, verb, backend, scene, preset, seed, command line, versions,
+                      git commit, dataset, source run, times, status
+    config.yaml       the resolved config
+    checkpoints/      last.pt and best.pt: model, optimizer state, epoch/step, RNG states
+    metrics.json      final metrics (written once, at the end)
+    metrics.jsonl     curves: one JSON object per logged step
+    artifacts/        PNG plots, MP4/GIF videos, rerun .rrd recordings
+
+The physint home is ``$PHYSINT_HOME`` or ``./physint_runs``; it holds ``datasets/`` (cached
+datasets) and ``runs/<method>/``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import secrets
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from .datasets import atomic_write_bytes, atomic_write_json, check_writable, versions
+from .errors import BadInput
+
+CHECKPOINTS = "checkpoints"
+ARTIFACTS = "artifacts"
+
+
+def home() -> Path:
+    return Path(os.environ.get("PHYSINT_HOME", "physint_runs")).expanduser()
+
+
+def git_commit() -> str | None:
+    try:
+        out = subprocess.run(["git", "rev-parse", "HEAD"], capture_output=True, text=True, timeout=5,
+                             cwd=Path(__file__).resolve().parent)
+        return out.stdout.strip() or None if out.returncode == 0 else None
+    except (OSError, subprocess.SubprocessError):
+        return None
+
+
+@dataclass
+class Run:
+    path: Path
+
+    # -- creation -----------------------------------------------------------------------------
+    @classmethod
+    def create(cls, verb: str, ctx: Any, config: dict[str, Any], out: Path | None = None, extra: dict | None = None) -> Run:
+        if out is None:
+            stamp = time.strftime("%Y%m%d-%H%M%S")
+            out = home() / "runs" / ctx.method / f"{stamp}-{verb}-{ctx.backend}-{secrets.token_hex(2)}"
+        path = Path(out)
+        if (path / "run.json").exists() and verb != "train":
+            raise BadInput(f"--out {path} already holds a run; choose a new directory")
+        check_writable(path)
+        run = cls(path)
+        (path / CHECKPOINTS).mkdir(exist_ok=True)
+        (path / ARTIFACTS).mkdir(exist_ok=True)
+        info = {
+            "method": ctx.method, "verb": verb, "backend": ctx.backend, "scene": ctx.scene, "preset": ctx.preset,
+            "seed": ctx.seed, "device": ctx.device, "command": sys.argv, "cwd": os.getcwd(),
+            "versions": versions("mujoco", "pybullet", "robosuite"), "git_commit": git_commit(),
+            "data": str(ctx.data) if ctx.data else None,
+            "source_run": str(ctx.source_run) if ctx.source_run else None,
+            "options": ctx.options, "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "status": "running",
+            **(extra or {}),
+        }
+        atomic_write_json(path / "run.json", info)
+        atomic_write_bytes(path / "config.yaml", yaml.safe_dump({"method": ctx.method, "preset": ctx.preset,
+                                                                  "config": config}, sort_keys=False).encode())
+        return run
+
+    # -- contents -----------------------------------------------------------------------------
+    @property
+    def info(self) -> dict[str, Any]:
+        return json.loads((self.path / "run.json").read_text())
+
+    def update_info(self, **changes: Any) -> None:
+        atomic_write_json(self.path / "run.json", {**self.info, **changes})
+
+    def checkpoint(self, name: str = "last") -> Path:
+        return self.path / CHECKPOINTS / f"{name}.pt"
+
+    def artifact(self, name: str) -> Path:
+        return self.path / ARTIFACTS / name
+
+    def log_metrics(self, step: int, **metrics: Any) -> None:
+        """Append one point of the training/evaluation curves to metrics.jsonl."""
+        with open(self.path / "metrics.jsonl", "a") as f:
+            f.write(json.dumps({"step": step, "time": round(time.time(), 3), **metrics}, default=float) + "\n")
+
+    def finish(self, metrics: dict[str, Any]) -> None:
+        atomic_write_json(self.path / "metrics.json", metrics)
+        self.update_info(status="complete", finished=time.strftime("%Y-%m-%dT%H:%M:%S%z"))
+
+    def artifacts(self) -> list[str]:
+        return sorted(str(p.relative_to(self.path)) for p in (self.path / ARTIFACTS).rglob("*") if p.is_file())
+
+
+def open_run(path: Path | str, method: str | None = None, need_checkpoint: bool = True) -> Run:
+    """A trained run to evaluate or deploy, or BadInput saying what is wrong."""
+    p = Path(path)
+    if not (p / "run.json").is_file():
+        raise BadInput(f"--run {p}: not a physint run directory (no run.json)")
+    run = Run(p)
+    info = run.info
+    if method and info.get("method") != method:
+        raise BadInput(f"--run {p} is a run of method {info.get('method')!r}, not {method!r}")
+    if need_checkpoint and not run.checkpoint("last").exists() and not run.checkpoint("best").exists():
+        raise BadInput(f"--run {p} has no checkpoint; train it first with `physint train {info.get('method')}` (or --resume)")
+    return run
+
+
+def latest_run(method: str, verb: str = "train", need_checkpoint: bool = True) -> Run:
+    root = home() / "runs" / method
+    candidates = sorted(root.glob(f"*-{verb}-*"), reverse=True) if root.is_dir() else []
+    for path in candidates:
+        run = Run(path)
+        if (path / "run.json").is_file() and (not need_checkpoint or run.checkpoint("last").exists()):
+            return run
+    raise BadInput(f"no trained {method} run under {root}; train one with `physint train {method}` or pass --run DIR")

@@ -1,0 +1,173 @@
+"""Training helpers shared by methods: devices, DistributedDataParallel, checkpoints, a fit loop.
+
+Launched under ``torchrun`` (``WORLD_SIZE`` > 1) training runs with DistributedDataParallel,
+on gloo for CPU and NCCL for CUDA; otherwise single-process. Only rank 0 writes the run.
+"""
+
+from __future__ import annotations
+
+import os
+import random
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+from .errors import BadInput
+
+
+def resolve_device(device: str) -> str:
+    import torch
+
+    if device not in ("auto", "cpu", "cuda") and not device.startswith("cuda:"):
+        raise BadInput(f"--device {device!r} is not valid; use auto, cpu or cuda")
+    if device == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    if device.startswith("cuda") and not torch.cuda.is_available():
+        raise BadInput("--device cuda: no CUDA device is available here; use --device cpu or auto")
+    return device
+
+
+def seed_everything(seed: int) -> None:
+    import torch
+
+    random.seed(seed)
+    np.random.seed(seed % (2**32))
+    torch.manual_seed(seed)
+
+
+@dataclass
+class Dist:
+    rank: int = 0
+    world_size: int = 1
+    local_rank: int = 0
+
+    @property
+    def is_main(self) -> bool:
+        return self.rank == 0
+
+    @property
+    def enabled(self) -> bool:
+        return self.world_size > 1
+
+
+def init_distributed(device: str) -> Dist:
+    """Join the torchrun process group if launched under torchrun."""
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    if world <= 1:
+        return Dist()
+    import torch.distributed as dist
+
+    if not dist.is_initialized():
+        dist.init_process_group(backend="nccl" if device.startswith("cuda") else "gloo")
+    local = int(os.environ.get("LOCAL_RANK", "0"))
+    if device.startswith("cuda"):
+        import torch
+
+        torch.cuda.set_device(local)
+    return Dist(rank=dist.get_rank(), world_size=dist.get_world_size(), local_rank=local)
+
+
+def barrier(d: Dist) -> None:
+    if d.enabled:
+        import torch.distributed as dist
+
+        dist.barrier()
+
+
+def save_checkpoint(path: Path, **state: Any) -> None:
+    """Atomically save model/optimizer/progress state (temp file + rename)."""
+    import torch
+
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    torch.save(state, tmp)
+    os.replace(tmp, path)
+
+
+def load_checkpoint(path: Path, map_location: str = "cpu") -> dict[str, Any]:
+    import torch
+
+    try:
+        return torch.load(path, map_location=map_location, weights_only=False)
+    except Exception as exc:
+        raise BadInput(f"checkpoint {path} cannot be read ({type(exc).__name__}); it may be corrupted") from None
+
+
+def unwrap(model):
+    return model.module if hasattr(model, "module") else model
+
+
+@dataclass
+class FitResult:
+    epochs: int
+    best_metric: float
+    history: list[dict[str, float]]
+
+
+def fit(model, train_set, val_set, *, run, epochs: int, batch_size: int, lr: float, loss_fn: Callable,
+        metric_fn: Callable, device: str = "cpu", resume: bool = False, optimizer: str = "adam",
+        weight_decay: float = 0.0, num_workers: int = 0, seed: int = 0, higher_is_better: bool = False,
+        meta: dict[str, Any] | None = None, log: Callable[[str], None] = print) -> FitResult:
+    """Supervised training with checkpoints every epoch, resume and DDP.
+
+    ``loss_fn(model, batch) -> scalar loss``; ``metric_fn(model, loader) -> float`` on validation.
+    ``meta`` is saved in every checkpoint (e.g. the model name and its constructor arguments).
+    """
+    import torch
+    from torch.utils.data import DataLoader, DistributedSampler
+
+    d = init_distributed(device)
+    seed_everything(seed + d.rank)
+    model = model.to(device)
+    if d.enabled:
+        model = torch.nn.parallel.DistributedDataParallel(model)
+    params = [p for p in model.parameters() if p.requires_grad]
+    opt = {"adam": torch.optim.Adam, "rmsprop": torch.optim.RMSprop, "sgd": torch.optim.SGD}[optimizer](
+        params, lr=lr, weight_decay=weight_decay)
+    start_epoch, best, history = 0, None, []
+    last = run.checkpoint("last")
+    if resume and last.exists():
+        state = load_checkpoint(last, device)
+        unwrap(model).load_state_dict(state["model"])
+        opt.load_state_dict(state["optimizer"])
+        start_epoch, best, history = state["epoch"], state.get("best"), state.get("history", [])
+        torch.set_rng_state(state["torch_rng"])
+        log(f"resumed from {last} at epoch {start_epoch}")
+    sampler = DistributedSampler(train_set, shuffle=True, seed=seed) if d.enabled else None
+    generator = torch.Generator().manual_seed(seed)
+    loader = DataLoader(train_set, batch_size=batch_size, shuffle=sampler is None, sampler=sampler,
+                        num_workers=num_workers, generator=generator, drop_last=False)
+    val_loader = DataLoader(val_set, batch_size=batch_size, shuffle=False, num_workers=num_workers)
+    for epoch in range(start_epoch, epochs):
+        if sampler is not None:
+            sampler.set_epoch(epoch)
+        model.train()
+        total, count = 0.0, 0
+        for batch in loader:
+            batch = {k: v.to(device) if hasattr(v, "to") else v for k, v in batch.items()}
+            loss = loss_fn(model, batch)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            total += float(loss.detach()) * len(next(iter(batch.values())))
+            count += len(next(iter(batch.values())))
+        model.eval()
+        with torch.no_grad():
+            val = float(metric_fn(unwrap(model), val_loader))
+        point = {"epoch": epoch + 1, "train_loss": total / max(count, 1), "val_metric": val}
+        history.append(point)
+        improved = best is None or (val > best if higher_is_better else val < best)
+        if improved:
+            best = val
+        if d.is_main:
+            run.log_metrics(epoch + 1, **point)
+            state = dict(model=unwrap(model).state_dict(), optimizer=opt.state_dict(), epoch=epoch + 1, best=best,
+                         history=history, torch_rng=torch.get_rng_state(), meta=meta or {})
+            if improved:
+                save_checkpoint(run.checkpoint("best"), **state)
+            save_checkpoint(run.checkpoint("last"), **state)
+            log(f"epoch {epoch + 1}/{epochs}: train loss {point['train_loss']:.4f}, val {val:.4f}")
+        barrier(d)
+    return FitResult(epochs=epochs, best_metric=float(best) if best is not None else float("nan"), history=history)

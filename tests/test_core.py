@@ -1,0 +1,236 @@
+"""The core: configs, datasets, runs, the CLI's verbs and its bad-input handling (no simulator)."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+from conftest import call
+
+from physint_cli import config as configs
+from physint_cli.datasets import ShardedDataset, verify
+from physint_cli.errors import BadInput
+
+
+def j(out: str) -> dict:
+    lines = [line for line in out.splitlines() if line.strip()]
+    assert len(lines) == 1, f"expected exactly one JSON line on stdout, got {out!r}"
+    return json.loads(lines[0])
+
+
+# -- configs --------------------------------------------------------------------------------------
+
+def test_config_presets_files_and_sets(toy_plugins, tmp_path):
+    from toy_plugin import Toy
+
+    cfg = configs.resolve(Toy.config_class, Toy.presets, "tiny")
+    assert cfg.data.train == 32 and cfg.train.lr == 0.05
+    f = tmp_path / "c.yaml"
+    f.write_text("train:\n  lr: 0.5\ndata:\n  val: 4\n")
+    cfg = configs.resolve(Toy.config_class, Toy.presets, "paper", f, ["train.lr=1e-3", "data.test=7"])
+    assert (cfg.data.train, cfg.data.val, cfg.data.test, cfg.train.lr) == (1000, 4, 7, 1e-3)
+    with pytest.raises(BadInput, match="unknown key 'train.learning_rate'.*valid keys: data.train"):
+        configs.resolve(Toy.config_class, Toy.presets, "tiny", None, ["train.learning_rate=1"])
+    with pytest.raises(BadInput, match="train.epochs: expected int, got 'many'"):
+        configs.resolve(Toy.config_class, Toy.presets, "tiny", None, ["train.epochs=many"])
+    with pytest.raises(BadInput, match="unknown preset 'huge'"):
+        configs.resolve(Toy.config_class, Toy.presets, "huge")
+
+
+def test_help_config_lists_keys_types_and_values(toy_plugins):
+    code, out, _ = call("train", "toy", "--preset", "tiny", "--help-config")
+    assert code == 0
+    assert "data.train" in out and "int" in out and "32" in out and "training samples" in out
+
+
+# -- datasets -------------------------------------------------------------------------------------
+
+def test_dataset_generate_read_and_verify(toy_plugins, tmp_path):
+    out = tmp_path / "ds"
+    code, stdout, err = call("dataset", "toy", "--preset", "tiny", "--out", str(out), "--json")
+    assert code == 0, err
+    result = j(stdout)
+    assert result["splits"] == {"train": 32, "val": 16, "test": 16}
+    manifest = json.loads((out / "manifest.json").read_text())
+    for key in ("method", "scene", "backend", "preset", "seed", "config", "schema", "splits", "versions", "created", "shards"):
+        assert key in manifest, key
+    assert manifest["status"] == "complete" and manifest["schema"]["image"] == {"dtype": "uint8", "shape": [8, 8, 3]}
+    ds = ShardedDataset(out, "train")
+    assert len(ds) == 32
+    rec = ds[31]
+    assert rec["image"].shape == (8, 8, 3) and rec["y"] == pytest.approx(2 * rec["x"] + 1, abs=0.1)
+    with h5py.File(out / "shards" / "train-00000.h5") as f:  # images are chunked and compressed
+        assert f["image"].compression == "gzip" and f["image"].chunks == (1, 8, 8, 3)
+    assert verify(out) == []
+    # same seed and config -> same data
+    call("dataset", "toy", "--preset", "tiny", "--out", str(tmp_path / "ds2"))
+    assert np.array_equal(ShardedDataset(tmp_path / "ds2", "test").column("x"), ShardedDataset(out, "test").column("x"))
+
+
+def test_verify_names_corrupted_and_truncated_shards(toy_plugins, tmp_path):
+    out = tmp_path / "ds"
+    assert call("dataset", "toy", "--preset", "tiny", "--out", str(out))[0] == 0
+    shard = out / "shards" / "train-00001.h5"
+    data = bytearray(shard.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    shard.write_bytes(bytes(data))
+    short = out / "shards" / "val-00000.h5"
+    short.write_bytes(short.read_bytes()[:100])
+    code, stdout, err = call("dataset", "--verify", str(out), "--json")
+    assert code == 1
+    problems = j(stdout)["problems"]
+    assert any("train-00001.h5" in p and "checksum" in p for p in problems)
+    assert any("val-00000.h5" in p and "truncated" in p for p in problems)
+    assert len(problems) == 2
+
+
+def test_interrupted_generation_resumes_without_redoing_shards(toy_plugins, tmp_path, monkeypatch):
+    from toy_plugin import Toy
+
+    out = tmp_path / "ds"
+    calls = {"n": 0}
+    original = Toy.generate
+
+    def flaky(self, ctx, unit):
+        calls["n"] += 1
+        if calls["n"] == 3:
+            raise KeyboardInterrupt  # Ctrl-C while the third shard is being made
+        return original(self, ctx, unit)
+
+    monkeypatch.setattr(Toy, "generate", flaky)
+    code, _, err = call("dataset", "toy", "--preset", "tiny", "--out", str(out))
+    assert code == 130 and "rerun the same command to resume" in err
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["status"] == "incomplete"
+    done = sorted(p.name for p in (out / "shards").glob("*.h5"))
+    assert done == ["train-00000.h5", "train-00001.h5"]
+    assert not list((out / "shards").glob(".*tmp*"))  # nothing half-written left behind
+    mtimes = {p: p.stat().st_mtime_ns for p in (out / "shards").glob("*.h5")}
+    code, _, err = call("train", "toy", "--data", str(out))  # an incomplete dataset is refused
+    assert code == 2 and "incomplete" in err
+    monkeypatch.setattr(Toy, "generate", original)
+    calls["n"] = 0
+    code, _, err = call("dataset", "toy", "--preset", "tiny", "--out", str(out))
+    assert code == 0, err
+    assert "resuming: 2 of 4 shards already done" in err
+    for p, t in mtimes.items():
+        assert p.stat().st_mtime_ns == t  # finished shards were not redone
+    assert verify(out) == []
+
+
+def test_parallel_workers_give_the_same_dataset(toy_plugins, tmp_path):
+    assert call("dataset", "toy", "--preset", "tiny", "--out", str(tmp_path / "a"))[0] == 0
+    code, _, err = call("dataset", "toy", "--preset", "tiny", "--out", str(tmp_path / "b"), "--workers", "2")
+    assert code == 0, err
+    for split in ("train", "val", "test"):
+        a, b = ShardedDataset(tmp_path / "a", split), ShardedDataset(tmp_path / "b", split)
+        assert np.array_equal(a.column("y"), b.column("y"))
+
+
+# -- train / eval / deploy -------------------------------------------------------------------------
+
+def test_train_caches_dataset_resumes_and_evaluates(toy_plugins, physint_home):
+    code, out, err = call("train", "toy", "--preset", "tiny", "--set", "train.epochs=3", "--json")
+    assert code == 0, err
+    first = j(out)
+    run = Path(first["run"])
+    for name in ("run.json", "config.yaml", "metrics.json", "metrics.jsonl", "checkpoints/last.pt", "checkpoints/best.pt"):
+        assert (run / name).exists(), name
+    info = json.loads((run / "run.json").read_text())
+    for key in ("command", "versions", "seed", "git_commit", "data", "preset"):
+        assert key in info
+    assert len((run / "metrics.jsonl").read_text().splitlines()) == 3
+    # the dataset was generated once, under the home, and is reused
+    cached = list((physint_home / "datasets").iterdir())
+    assert len(cached) == 1 and Path(first["data"]) == cached[0].resolve()
+    code, out, err = call("train", "toy", "--preset", "tiny", "--set", "train.epochs=3", "--out", str(physint_home / "r2"))
+    assert code == 0 and "generating" not in err
+    # resume the first run to 60 epochs: continues at epoch 4
+    code, out, err = call("train", "toy", "--resume", "--run", str(run), "--set", "train.epochs=60", "--json")
+    assert code == 0, err
+    assert "resumed from" in err and "at epoch 3" in err
+    assert len((run / "metrics.jsonl").read_text().splitlines()) == 60
+    assert j(out)["metrics"]["val_mse"] < 0.1  # learned y = 2x + 1 (predicting the mean scores ~1.3)
+    code, out, err = call("eval", "toy", "--run", str(run), "--json")
+    assert code == 0, err
+    ev = j(out)
+    assert ev["metrics"]["n"] == 8 and ev["source_run"] == str(run.resolve())
+    code, out, err = call("deploy", "toy", "--target", "hello", "--json")  # latest run by default
+    assert code == 0, err
+    assert j(out)["metrics"]["target"] == "hello"
+
+
+def test_eval_units_run_in_worker_processes(toy_plugins):
+    assert call("train", "toy", "--preset", "tiny", "--set", "train.epochs=1")[0] == 0
+    code, out, err = call("eval", "toy", "--workers", "2", "--json")
+    assert code == 0, err
+    pids = j(out)["metrics"]["pids"]
+    assert os.getpid() not in pids and len(pids) >= 1
+
+
+# -- bad input: one line, exit 2 -------------------------------------------------------------------
+
+@pytest.mark.parametrize("args, message", [
+    (["train", "tyo"], "unknown method 'tyo' (did you mean 'toy'?)"),
+    (["train", "toy", "--backend", "mujocoo"], "unknown backend 'mujocoo' (did you mean 'mujoco'?)"),
+    (["train", "toy", "--backend", "robosuite"], "does not support backend 'robosuite'; supported: mujoco, pybullet"),
+    (["train", "toy", "--scene", "lien"], "unknown scene 'lien' (did you mean 'line'?)"),
+    (["train", "toy", "--model", "linaer"], "(did you mean 'linear'?)"),
+    (["train", "toy", "--set", "train.epoch=3"], "unknown key 'train.epoch' (did you mean 'train.epochs'?); valid keys:"),
+    (["train", "toy", "--set", "train.lr=fast"], "train.lr: expected float, got 'fast'"),
+    (["train", "toy", "--set", "nonsense"], "--set expects key=value"),
+    (["train", "toy", "--preset", "huge"], "unknown preset 'huge'"),
+    (["train", "toy", "--config", "/nonexistent.yaml"], "no such file"),
+    (["train", "toy", "--data", "/nonexistent"], "no dataset at /nonexistent"),
+    (["eval", "toy"], "no trained toy run"),
+    (["eval", "toy", "--run", "/tmp"], "not a physint run directory"),
+    (["dataset", "toy", "--workers", "0"], "--workers must be >= 1"),
+    (["train", "toy", "--device", "tpu"], "--device 'tpu' is not valid"),
+    (["dataset", "--verify", "/nonexistent"], "no dataset at /nonexistent"),
+])
+def test_bad_input_exits_2_with_one_line(toy_plugins, args, message):
+    code, out, err = call(*args)
+    assert code == 2, err
+    assert message in err
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1
+    assert out == ""
+
+
+def test_dataset_of_another_method_and_run_without_checkpoint(toy_plugins, tmp_path):
+    ds = tmp_path / "ds"
+    assert call("dataset", "toy", "--preset", "tiny", "--out", str(ds))[0] == 0
+    manifest = json.loads((ds / "manifest.json").read_text())
+    manifest["method"] = "stability"
+    (ds / "manifest.json").write_text(json.dumps(manifest))
+    code, _, err = call("train", "toy", "--data", str(ds))
+    assert code == 2 and "made for method 'stability', not 'toy'" in err
+    (ds / "manifest.json").write_text("{not json")
+    code, _, err = call("train", "toy", "--data", str(ds))
+    assert code == 2 and "corrupted" in err
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "run.json").write_text(json.dumps({"method": "toy"}))
+    code, _, err = call("eval", "toy", "--run", str(run))
+    assert code == 2 and "has no checkpoint" in err
+
+
+def test_unwritable_out(toy_plugins, tmp_path):
+    blocker = tmp_path / "file"
+    blocker.write_text("")  # a file where a directory should go: unwritable for root too
+    code, _, err = call("dataset", "toy", "--preset", "tiny", "--out", str(blocker / "ds"))
+    assert code == 2 and "cannot write there" in err
+
+
+def test_runtime_failure_exits_1_without_traceback(toy_plugins, monkeypatch, tmp_path):
+    from toy_plugin import Toy
+
+    def boom(self, ctx, unit):
+        raise RuntimeError("simulator exploded")
+
+    monkeypatch.setattr(Toy, "generate", boom)
+    code, _, err = call("dataset", "toy", "--out", str(tmp_path / "ds"))
+    assert code == 1 and "simulator exploded" in err and "Traceback" not in err
