@@ -117,7 +117,8 @@ class Simulation(ABC):
 
     @abstractmethod
     def contacts(self, name: str) -> list[str]:
-        """Names of bodies touching ``name`` now ("ground" for the ground plane, "robot" for the robot)."""
+        """Names of bodies touching ``name`` now: scene body names, "ground" for the ground plane,
+        "table" for the robot's table, "robot" for the arm, gripper and pedestal."""
 
     def in_contact(self, a: str, b: str) -> bool:
         return b in self.contacts(a)

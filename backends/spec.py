@@ -66,7 +66,10 @@ def _positive(value: Any, where: str) -> float:
 
 
 def _rgba(value: Any, where: str) -> tuple[float, float, float, float]:
-    arr = np.asarray(value, dtype=float).reshape(-1)
+    try:
+        arr = np.asarray(value, dtype=float).reshape(-1)
+    except (TypeError, ValueError):
+        raise SpecError(f"{where} must be 3 or 4 numbers in [0, 1], got {value!r}") from None
     if arr.size == 3:
         arr = np.append(arr, 1.0)
     rgba = _finite_vector(arr, 4, where)
@@ -340,7 +343,8 @@ def unknown_name(kind: str, name: str, choices: list[str]) -> SpecError:
     from physint_cli.errors import suggest
 
     valid = ", ".join(choices) if choices else "none in this scene"
-    return SpecError(f"no {kind} named {name!r}{suggest(name, choices)}; {kind}s: {valid}")
+    plural = {"body": "bodies"}.get(kind, kind + "s")
+    return SpecError(f"no {kind} named {name!r}{suggest(name, choices)}; {plural}: {valid}")
 
 
 def validate_action(action: Any) -> np.ndarray:

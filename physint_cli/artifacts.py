@@ -73,7 +73,7 @@ class Recording:
 
         self.rr = rr
         self.path = Path(path)
-        self.stream = rr.RecordingStream(f"physint/{name}")
+        self.stream = rr.RecordingStream(f"physint-{name}")
         self.stream.save(str(self.path))
 
     def time(self, step: int | None = None, seconds: float | None = None) -> None:

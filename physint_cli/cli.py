@@ -349,7 +349,10 @@ def run(argv: list[str] | None = None) -> int:
 
 
 def main() -> None:
-    _redirect_stray_stdout()
+    args = sys.argv[1:]
+    wants_help = not args or any(a in ("--help", "--show-completion", "--install-completion") for a in args)
+    if not wants_help and "_PHYSINT_COMPLETE" not in os.environ:
+        _redirect_stray_stdout()
     sys.exit(run())
 
 

@@ -8,6 +8,7 @@ written by their workers, so rerunning resumes.
 from __future__ import annotations
 
 import multiprocessing
+import os
 import signal
 import sys
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
@@ -24,9 +25,29 @@ def progress_bar(quiet: bool = False):
                     TimeRemainingColumn(), console=Console(stderr=True), transient=False, disable=quiet)
 
 
+_RAY_ADDRESS: str | None = None
+
+
+def _check_reachable(address: str) -> None:
+    """Fail fast on an address where no Ray head listens (ray.init would retry for minutes)."""
+    import socket
+
+    host, _, port = address.removeprefix("ray://").rpartition(":")
+    try:
+        with socket.create_connection((host or "127.0.0.1", int(port)), timeout=5):
+            pass
+    except (OSError, ValueError) as exc:
+        raise BadInput(f"--ray {address}: cannot connect to a Ray cluster there ({exc}); "
+                       "start one with `ray start --head` or use --ray local") from None
+
+
 def _worker_init() -> None:
     # the parent handles Ctrl-C and stops the pool; workers must not print tracebacks for it
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+
+
+def _apply(fn, ctx, unit):
+    return fn(ctx, unit)
 
 
 def map_units(fn: Callable[[Any, Any], Any], ctx: Any, units: list[Any], description: str = "working") -> list[Any]:
@@ -66,15 +87,21 @@ def _map_ray(fn, ctx, units, description):
         import ray
     except ImportError:
         raise BadInput("--ray needs Ray: pip install 'physint[ray]'") from None
+    global _RAY_ADDRESS
     address = None if ctx.ray in ("local", "") else ctx.ray
+    if address and address != "auto":
+        _check_reachable(address)
     try:
+        if ray.is_initialized() and _RAY_ADDRESS != ctx.ray:
+            ray.shutdown()
         if not ray.is_initialized():
-            ray.init(address=address, ignore_reinit_error=True, log_to_driver=False, include_dashboard=False,
-                     configure_logging=False)
-    except (ConnectionError, ValueError, RuntimeError) as exc:
+            os.environ.setdefault("RAY_gcs_rpc_server_connect_timeout_s", "10")
+            ray.init(address=address, log_to_driver=False, include_dashboard=False, configure_logging=False)
+            _RAY_ADDRESS = ctx.ray
+    except Exception as exc:
         raise BadInput(f"--ray {ctx.ray}: cannot connect to a Ray cluster ({str(exc).splitlines()[0]})") from None
-    remote = ray.remote(fn)
-    refs = [remote.remote(ctx, unit) for unit in units]
+    remote = ray.remote(_apply)
+    refs = [remote.remote(fn, ctx, unit) for unit in units]
     results: list[Any] = [None] * len(units)
     index = {ref: i for i, ref in enumerate(refs)}
     with progress_bar(ctx.quiet) as progress:

@@ -15,7 +15,7 @@ from .errors import BadInput
 def _start(save: Path | None, name: str):
     import rerun as rr
 
-    rr.init(f"physint/{name}", spawn=False)
+    rr.init(f"physint-{name}", spawn=False)
     if save is not None:
         save.parent.mkdir(parents=True, exist_ok=True)
         rr.save(str(save))

@@ -92,7 +92,7 @@ def drop_scene(shape: str, size: float, height: float, timestep: float, image_si
     z = height + size
     body = Body.sphere("object", size, pos=(0, 0, z), rgba=(0.9, 0.3, 0.2, 1)) if shape == "sphere" else \
         Body.box("object", (2 * size,) * 3, pos=(0, 0, z), rgba=(0.2, 0.4, 0.9, 1))
-    camera = Camera("side", pos=(3.5, 0.0, 1.1), lookat=(0.0, 0.0, 1.0), fovy=45, width=image_size, height=image_size)
+    camera = Camera("side", pos=(1.8, 0.0, 1.05), lookat=(0.0, 0.0, 1.05), fovy=70, width=image_size, height=image_size)
     return Scene(bodies=[body], cameras=[camera], timestep=timestep)
 
 
@@ -296,7 +296,7 @@ class FreeFall(Method):
         model = self._load(ctx)
         with torch.no_grad():
             predicted = float(model(torch.tensor([[height]], dtype=torch.float32))[0, 0])
-        t_sim, first, video = simulate_drop(ctx, "sphere", 0.03, height, frames=True, fps=ctx.config.deploy.fps)
+        t_sim, first, video = simulate_drop(ctx, "sphere", 0.06, height, frames=True, fps=ctx.config.deploy.fps)
         run = Run(ctx.run)
         save_image(run.artifact("first_frame.png"), first)
         save_video(run.artifact("drop.gif"), video, fps=ctx.config.deploy.fps)
