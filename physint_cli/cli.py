@@ -6,6 +6,7 @@ Exit codes: 0 success, 1 runtime failure, 2 bad usage or bad input, 130 interrup
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import sys
@@ -306,11 +307,12 @@ def _redirect_stray_stdout() -> None:
         results_fd = os.dup(1)
         os.dup2(2, 1)
         _RESULTS = os.fdopen(results_fd, "w", buffering=1)
-        sys.stdout = sys.stderr
+        sys.stdout = _RESULTS  # Python-level prints (plugin commands) still reach stdout
     except OSError:
         _RESULTS = sys.stdout
 
 
+RESULT_VERBS = {"dataset", "train", "eval", "deploy", "pipeline", "plugins", "backends", "view"}
 INTERRUPTED = "interrupted: finished work is saved; rerun the same command to resume"
 
 
@@ -323,7 +325,13 @@ def run(argv: list[str] | None = None) -> int:
     except Exception:  # plugin command registration problems are reported by `physint plugins`
         pass
     try:
-        rc = app(args=argv, standalone_mode=False, prog_name="physint")
+        args = sys.argv[1:] if argv is None else argv
+        verb = next((a for a in args if not a.startswith("-")), None)
+        # the core's verbs print results only through emit(); stray prints from libraries go to stderr
+        protect = verb in RESULT_VERBS and not _wants_help(args)
+        guard = contextlib.redirect_stdout(sys.stderr) if protect else contextlib.nullcontext()
+        with guard:
+            rc = app(args=argv, standalone_mode=False, prog_name="physint")
         if rc == 130:  # typer turns Ctrl-C into exit code 130
             print(INTERRUPTED, file=sys.stderr)
         return rc if isinstance(rc, int) else 0
@@ -348,10 +356,12 @@ def run(argv: list[str] | None = None) -> int:
         _RESULTS.flush()
 
 
+def _wants_help(args: list[str]) -> bool:
+    return not args or any(a in ("--help", "--show-completion", "--install-completion") for a in args)
+
+
 def main() -> None:
-    args = sys.argv[1:]
-    wants_help = not args or any(a in ("--help", "--show-completion", "--install-completion") for a in args)
-    if not wants_help and "_PHYSINT_COMPLETE" not in os.environ:
+    if not _wants_help(sys.argv[1:]) and "_PHYSINT_COMPLETE" not in os.environ:
         _redirect_stray_stdout()
     sys.exit(run())
 

@@ -158,6 +158,7 @@ def versions(*distributions: str) -> dict[str, str]:
 def start_manifest(root: Path, header: dict[str, Any]) -> dict[str, Any]:
     """Write (or reuse, when resuming) the manifest of a dataset being generated."""
     root = Path(root)
+    root.mkdir(parents=True, exist_ok=True)
     path = root / MANIFEST
     if path.exists():
         old = json.loads(path.read_text())

@@ -23,25 +23,22 @@ class Backend:
 
 
 @dataclass
-class SceneInfo:
+class MethodPart:
+    """Something a plugin provides for a method, built on demand by ``build``."""
+
+    name: str
+    method: str
+    description: str = ""
+    build: Callable[..., Any] | None = None
+    plugin: str = ""
+
+
+class SceneInfo(MethodPart):
     """A named scene (scenario family) a method can generate data from."""
 
-    name: str
-    method: str
-    description: str = ""
-    build: Callable[..., Any] | None = None
-    plugin: str = ""
 
-
-@dataclass
-class ModelInfo:
-    """A network a method can train: ``build(config) -> torch.nn.Module``."""
-
-    name: str
-    method: str
-    description: str = ""
-    build: Callable[..., Any] | None = None
-    plugin: str = ""
+class ModelInfo(MethodPart):
+    """A network a method can train: ``build(**kwargs) -> torch.nn.Module``."""
 
 
 @dataclass

@@ -234,3 +234,27 @@ def test_runtime_failure_exits_1_without_traceback(toy_plugins, monkeypatch, tmp
     monkeypatch.setattr(Toy, "generate", boom)
     code, _, err = call("dataset", "toy", "--out", str(tmp_path / "ds"))
     assert code == 1 and "simulator exploded" in err and "Traceback" not in err
+
+
+def test_ctrl_c_during_training_keeps_the_last_checkpoint_and_resumes(toy_plugins, monkeypatch, tmp_path):
+    from physint_cli.runs import Run
+
+    original = Run.log_metrics
+
+    def interrupt_at_epoch_3(self, step, **metrics):
+        if step == 3:
+            raise KeyboardInterrupt
+        return original(self, step, **metrics)
+
+    monkeypatch.setattr(Run, "log_metrics", interrupt_at_epoch_3)
+    out = tmp_path / "run"
+    code, _, err = call("train", "toy", "--preset", "tiny", "--set", "train.epochs=5", "--out", str(out))
+    assert code == 130 and "rerun the same command to resume" in err
+    assert not (out / "metrics.json").exists()  # an interrupted run never reads as finished
+    assert json.loads((out / "run.json").read_text())["status"] == "running"
+    assert not list((out / "checkpoints").glob(".*tmp*"))
+    monkeypatch.setattr(Run, "log_metrics", original)
+    code, stdout, err = call("train", "toy", "--resume", "--run", str(out), "--json")
+    assert code == 0, err
+    assert "at epoch 2" in err and j(stdout)["metrics"]["epochs"] == 5
+    assert [json.loads(line)["step"] for line in (out / "metrics.jsonl").read_text().splitlines()] == [1, 2, 3, 4, 5]

@@ -102,6 +102,8 @@ def test_cli_basics(freefall_env):
     assert result.returncode == 0 and "--set" in result.stdout and "--resume" in result.stdout
     result = run_cli("train", "freefal", env=freefall_env)
     assert result.returncode == 2 and "did you mean 'freefall'" in result.stderr
+    result = run_cli("freefall-table", "1", "2", env=freefall_env)  # a command added by register_commands
+    assert result.returncode == 0 and result.stdout.splitlines() == ["1 m -> 0.4515 s", "2 m -> 0.6386 s"]
     result = run_cli("train", "freefall", "--bogus", env=freefall_env)
     assert result.returncode == 2 and "No such option" in result.stderr
     result = run_cli("backends", "--json")

@@ -36,3 +36,16 @@ def register_metrics(register):
 
     register(MetricInfo("mae", method="freefall", fn=mean_absolute_error, description="mean absolute error in seconds"))
     register(MetricInfo("analytic_time", method="freefall", fn=analytic_time, description="sqrt(2h/g)"))
+
+
+@hookimpl
+def register_commands(app):
+    import typer
+
+    @app.command("freefall-table")
+    def freefall_table(heights: list[float] = typer.Argument(..., help="Drop heights in metres.")):
+        """Print the analytic time to ground sqrt(2h/g) for each height."""
+        from .method import analytic_time
+
+        for h in heights:
+            typer.echo(f"{h:g} m -> {float(analytic_time(h)):.4f} s")
