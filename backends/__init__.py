@@ -38,6 +38,9 @@ def ensure_headless_gl() -> None:
         os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
 
+ensure_headless_gl()  # before anything imports mujoco: it picks its GL platform at import
+
+
 def simulation_class(name: str):
     if name not in BUILTIN:
         from physint_cli.errors import unknown

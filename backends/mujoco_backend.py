@@ -71,7 +71,7 @@ def camera_quat(camera: Camera) -> np.ndarray:
     return mat_to_quat(camera.rotation())
 
 
-def _cube_faces(image: np.ndarray, max_side: int = 512) -> tuple[int, bytes]:
+def cube_faces(image: np.ndarray, max_side: int = 512) -> tuple[int, bytes]:
     """A cube texture's data: the image resampled to a square (nearest pixel) and repeated on 6 faces."""
     h, w = image.shape[:2]
     side = int(min(max(h, w), max_side))
@@ -105,7 +105,7 @@ def _texture_material(spec: mujoco.MjSpec, name: str, texture: Texture, rgba, *,
         tex.height, tex.width = img.shape[:2]
         tex.data = img.tobytes()
     else:
-        side, data = _cube_faces(img)
+        side, data = cube_faces(img)
         tex.type = mujoco.mjtTexture.mjTEXTURE_CUBE
         tex.width, tex.height = side, 6 * side
         tex.data = data
@@ -196,6 +196,9 @@ def build_spec(scene: Scene, *, robot_visual: str = "collision") -> BuiltScene:
     spec.visual.global_.offwidth = max([MIN_OFFSCREEN] + [c.width for c in scene.cameras])
     spec.visual.global_.offheight = max([MIN_OFFSCREEN] + [c.height for c in scene.cameras])
     spec.visual.headlight.active = 0 if scene.lights else 1
+    spec.add_texture(name=ENV_PREFIX + "sky", type=mujoco.mjtTexture.mjTEXTURE_SKYBOX,
+                     builtin=mujoco.mjtBuiltin.mjBUILTIN_FLAT, rgb1=list(scene.background),
+                     rgb2=list(scene.background), width=8, height=8)
     solref = contact_solref(scene.timestep)
 
     ground_geom = None
@@ -249,13 +252,16 @@ class _GLResources:
         self.con.readDepthMap = mujoco.mjtDepthMap.mjDEPTH_ZEROFAR
 
     def free(self) -> None:
-        if self.con is not None:
-            self.gl.make_current()
-            self.con.free()
-            self.con = None
-        if self.gl is not None:
-            self.gl.free()
-            self.gl = None
+        try:
+            if self.con is not None:
+                self.gl.make_current()
+                self.con.free()
+            if self.gl is not None:
+                self.gl.free()
+        except Exception:  # at interpreter exit EGL may already be torn down: nothing left to free
+            pass
+        self.con = None
+        self.gl = None
 
 
 class OffscreenRenderer:

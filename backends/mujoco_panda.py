@@ -29,6 +29,8 @@ import importlib.util
 import os
 
 import mujoco
+from typing import Any
+
 import numpy as np
 
 from .base import Robot, RobotState, check_part
@@ -52,7 +54,6 @@ FINGER_OPEN = np.array([0.04, -0.04])  # finger joint targets (m); closed is (0,
 FINGER_CLOSED = np.array([0.0, 0.0])
 
 PEDESTAL = (0.24, 0.24)  # robot pedestal footprint (m)
-TABLE_RGBA = (0.72, 0.58, 0.42, 1.0)
 PEDESTAL_RGBA = (0.25, 0.25, 0.27, 1.0)
 LINK_RGBA = (0.93, 0.93, 0.93, 1.0)  # collision meshes drawn as the Panda's white links
 DARK_RGBA = (0.25, 0.25, 0.27, 1.0)  # fingers
@@ -122,7 +123,7 @@ def add_panda(spec: mujoco.MjSpec, robot: RobotSpec, *, visual: str = "collision
         tx, ty = robot.table_size
         h = robot.table_height
         table = spec.worldbody.add_geom(name="env/table", type=mujoco.mjtGeom.mjGEOM_BOX, pos=[0, 0, h / 2],
-                                        size=[tx / 2, ty / 2, h / 2], rgba=list(TABLE_RGBA))
+                                        size=[tx / 2, ty / 2, h / 2], rgba=list(robot.table_rgba))
         table.friction = [friction, 0.005, 0.0001]
         if solref is not None:
             table.solref = solref
@@ -254,7 +255,40 @@ def solve_ik(model: mujoco.MjModel, data: mujoco.MjData, panda: PandaModel, targ
     return q, float(np.linalg.norm(target - data.site_xpos[panda.site]))
 
 
-class MujocoPanda(Robot):
+class PandaSensing(Robot):
+    """What a Panda in a MuJoCo model senses, for any controller driving it.
+
+    Subclasses set ``world`` (a MujocoWorld), ``panda`` (joint, finger and site indices),
+    ``parts`` (robot part -> geom ids) and ``body_names`` (the scene's bodies).
+    """
+
+    world: Any
+    panda: Any
+    parts: dict[str, np.ndarray]
+    body_names: list[str]
+
+    def state(self) -> RobotState:
+        self.world.forward()
+        d, p = self.world.data, self.panda
+        fingers = d.qpos[p.finger_qadr]
+        return RobotState(
+            joints=d.qpos[p.qadr].copy(),
+            ee_pos=d.site_xpos[p.site].copy(),
+            gripper_opening=float(fingers[0] - fingers[1]),  # pad gap: finger 1 opens +, finger 2 opens -
+            contacts={part: self._touched(part) for part in self.parts},
+        )
+
+    def touching(self, body: str, part: str = "any") -> bool:
+        check_part(part)
+        if body not in ("table", "ground") and body not in self.body_names:
+            raise unknown_name("body", body, self.body_names)
+        return body in self._touched(part)
+
+    def _touched(self, part: str) -> list[str]:
+        return self.world.touching(self.parts[part], exclude=("robot",))
+
+
+class MujocoPanda(PandaSensing):
     """The Panda of a :class:`~physint_backends.mujoco_backend.MujocoSimulation`.
 
     ``goal_update_mode`` follows robosuite's OSC: ``"achieved"`` (default) adds each
@@ -322,23 +356,3 @@ class MujocoPanda(Robot):
             self.world.data.ctrl[self.panda.finger_act] = FINGER_CLOSED if a[3] == GRIPPER_CLOSE else FINGER_OPEN
         self.world.step(self.substeps)
         return self.state()
-
-    def state(self) -> RobotState:
-        self.world.forward()
-        d, p = self.world.data, self.panda
-        fingers = d.qpos[p.finger_qadr]
-        return RobotState(
-            joints=d.qpos[p.qadr].copy(),
-            ee_pos=d.site_xpos[p.site].copy(),
-            gripper_opening=float(fingers[0] - fingers[1]),  # pad gap: finger 1 opens +, finger 2 opens -
-            contacts={part: self._touched(part) for part in self.parts},
-        )
-
-    def touching(self, body: str, part: str = "any") -> bool:
-        check_part(part)
-        if body not in ("table", "ground") and body not in self.body_names:
-            raise unknown_name("body", body, self.body_names)
-        return body in self._touched(part)
-
-    def _touched(self, part: str) -> list[str]:
-        return self.world.touching(self.parts[part], exclude=("robot",))

@@ -304,6 +304,7 @@ class PybulletSimulation(Simulation):
             lut[uid + 1] = SEG_ROBOT
         self._seg_lut = lut
         self._set_light(scene.lights[0] if scene.lights else Light())
+        self._background = np.round(np.asarray(scene.background) * 255).astype(np.uint8)
 
     def _add_ground(self) -> int:
         """An infinite collision plane at z = 0 with a visible slab of the ground's size and look."""
@@ -596,6 +597,9 @@ class PybulletSimulation(Simulation):
             flags=flags, physicsClientId=self._cid, **self._light)
         if rgb:
             frame.rgb = np.ascontiguousarray(np.reshape(colour, (cam.height, cam.width, 4))[..., :3], dtype=np.uint8)
+            # TinyRenderer clears to white: paint the scene's background where nothing was drawn
+            empty = np.reshape(np.asarray(zbuf), (cam.height, cam.width)) >= 1.0 - 1e-6
+            frame.rgb[empty] = self._background
         if depth:  # invert the perspective depth buffer to metres along the camera axis
             z = np.reshape(np.asarray(zbuf, dtype=np.float64), (cam.height, cam.width))
             n, fa = self.near, self.far

@@ -40,7 +40,6 @@ FINGER_FORCE = 20.0  # grip force per finger (N): holds a few hundred grams by f
 FINGER_COUPLING_FORCE = 50.0  # N: the gear keeping both fingers at the same travel
 FINGER_FRICTION = 1.0  # sliding friction of the rubber finger pads
 LINK_FRICTION = 0.5  # sliding friction of the rest of the arm
-TABLE_RGBA = (0.62, 0.48, 0.34, 1.0)
 PEDESTAL_RGBA = (0.25, 0.25, 0.28, 1.0)
 PEDESTAL_SIZE = 0.24  # edge of the square pedestal under the arm's base (m)
 MAX_LEAD_STEPS = 2  # how many control steps' worth of displacement the target may lead the hand by
@@ -82,7 +81,7 @@ class PybulletPanda(Robot):
             return uid
 
         tx, ty = spec.table_size
-        table = box((tx, ty, h), (0.0, 0.0, h / 2), TABLE_RGBA)
+        table = box((tx, ty, h), (0.0, 0.0, h / 2), spec.table_rgba)
         bx, by, _ = spec.base_pos
         mount = None
         if abs(bx) > tx / 2 or abs(by) > ty / 2:  # base beside the table: stand it on a pedestal

@@ -44,8 +44,8 @@ from collections import OrderedDict
 import numpy as np
 
 from . import ensure_headless_gl
-from .base import Robot, RobotState, Simulation, check_part
-from .spec import GRIPPER_NOOP, GRIPPER_OPEN, Body, Geom, Scene, SpecError, Texture, unknown_name, validate_action
+from .base import RobotState, Simulation
+from .spec import GRIPPER_NOOP, GRIPPER_OPEN, Body, Geom, Scene, SpecError, Texture, validate_action
 
 ensure_headless_gl()  # before robosuite imports mujoco, which picks its OpenGL platform on import
 
@@ -87,10 +87,10 @@ from robosuite.models.tasks import ManipulationTask  # noqa: E402
 from robosuite.utils.mjcf_utils import new_element, new_joint  # noqa: E402
 
 from .mujoco_backend import (  # noqa: E402
-    FREEZE_SOLIMP, GROUND, ROBOT, ROLLING, TABLE, TORSION, Z_FAR, Z_NEAR, MujocoSimulation, MujocoWorld, _cube_faces,
-    camera_quat, contact_solref, label_geoms,
+    FREEZE_SOLIMP, ROBOT, ROLLING, TORSION, Z_FAR, Z_NEAR, MujocoSimulation, MujocoWorld, cube_faces, camera_quat,
+    contact_solref, label_geoms,
 )
-from .mujoco_panda import DARK_RGBA, EE_DOWN, FINGER_OPEN, LINK_RGBA, solve_ik  # noqa: E402
+from .mujoco_panda import DARK_RGBA, EE_DOWN, FINGER_OPEN, LINK_RGBA, PandaSensing, solve_ik  # noqa: E402
 
 TABLE_THICKNESS = 0.05  # robosuite's table-top thickness, metres
 ARM = "right"  # robosuite's name for the Panda's only arm
@@ -125,7 +125,10 @@ def _friction(mu: float) -> list[float]:
 
 def _density(body: Body) -> float:
     """The density that gives the body its spec mass (robosuite objects are specified by density)."""
-    return float(body.total_mass / sum(g.volume() for g in body.geoms))
+    volume = sum(g.volume() for g in body.geoms)
+    if not volume > 0:  # also NaN, from trimesh on a flat mesh
+        raise SpecError(f"body {body.name!r} has no volume (a flat or open mesh?); bodies must be solid")
+    return float(body.total_mass / volume)
 
 
 def _texture_assets(name: str, texture: Texture, *, plane: bool) -> tuple[object, object]:
@@ -136,7 +139,7 @@ def _texture_assets(name: str, texture: Texture, *, plane: bool) -> tuple[object
     tiles a 2D texture and other geoms wrap a cube texture with the image on every face.
     """
     h, w = texture.image.shape[:2]
-    side = _cube_faces(texture.image)[0]  # a cube texture's faces are side x side
+    side = cube_faces(texture.image)[0]  # a cube texture's faces are side x side
     size = dict(type="2d", width=w, height=h) if plane else dict(type="cube", width=side, height=side)
     tex = new_element("texture", name=name, builtin="flat", rgb1="1 1 1", **size)
     mat = new_element("material", name=f"{name}_mat", texture=name, texrepeat=_floats(texture.repeat),
@@ -148,7 +151,7 @@ def upload_textures(model: mujoco.MjModel, textures: dict[str, tuple[Texture, bo
     """Copy texture pixels into the compiled model (name -> (texture, plane?)); before any rendering."""
     for name, (texture, plane) in textures.items():
         tid = mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_TEXTURE, name)
-        pixels = texture.image.tobytes() if plane else _cube_faces(texture.image)[1]
+        pixels = texture.image.tobytes() if plane else cube_faces(texture.image)[1]
         adr = model.tex_adr[tid]
         model.tex_data[adr:adr + len(pixels)] = np.frombuffer(pixels, dtype=np.uint8)
 
@@ -374,6 +377,10 @@ def hold_gripper_down(controller) -> None:
     controller.compute_goal_ori = lambda delta, goal_update_mode=None: EE_DOWN.copy()
 
 
+def _geom_ids(model: mujoco.MjModel, names: list[str]) -> np.ndarray:
+    return np.array([mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, n) for n in names])
+
+
 @dataclasses.dataclass
 class PandaIndices:
     """Where robosuite's Panda lives in the compiled model (the fields mujoco_panda.solve_ik reads)."""
@@ -385,8 +392,12 @@ class PandaIndices:
     site: int  # robosuite's grip_site, between the fingertips
 
 
-class RobosuiteRobot(Robot):
+class RobosuiteRobot(PandaSensing):
     """robosuite's Panda under its OSC_POSITION controller, behind the backend-neutral Robot interface.
+
+    What the robot senses (:meth:`state`, :meth:`touching`) is the MuJoCo backend's
+    (:class:`PandaSensing`): the same quantities (:class:`PandaIndices`, ``parts``) of the same
+    kind of model. Building, resetting and acting are robosuite's.
 
     The controller runs inside :class:`~physint_backends.mujoco_backend.MujocoWorld`'s step loop
     (it is one of the world's ``controllers``): between ``mj_step1`` and ``mj_step2`` of every
@@ -396,7 +407,8 @@ class RobosuiteRobot(Robot):
     (``"achieved"``) or from the previous goal (``"desired"``).
     """
 
-    def __init__(self, world: MujocoWorld, robot, spec, body_names: list[str], goal_update_mode: str = "achieved"):
+    def __init__(self, world: MujocoWorld, robot, spec, body_names: list[str],
+                 goal_update_mode: str = "achieved"):
         self.spec = spec
         self.world = world
         self.body_names = list(body_names)
@@ -409,9 +421,8 @@ class RobosuiteRobot(Robot):
             limits=model.jnt_range[self._robot._ref_joint_indexes],
             finger_qadr=np.asarray(self._robot._ref_gripper_joint_pos_indexes[ARM]),
             site=mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_SITE, gripper.important_sites["grip_site"]))
-        ids = lambda names: np.array([mujoco.mj_name2id(model, mujoco.mjtObj.mjOBJ_GEOM, n) for n in names])  # noqa: E731
-        fingers = ids(gripper.important_geoms["left_finger"] + gripper.important_geoms["right_finger"])
-        self.parts = {"fingers": fingers, "palm": np.setdiff1d(ids(gripper.contact_geoms), fingers),
+        fingers = _geom_ids(model, gripper.important_geoms["left_finger"] + gripper.important_geoms["right_finger"])
+        self.parts = {"fingers": fingers, "palm": np.setdiff1d(_geom_ids(model, gripper.contact_geoms), fingers),
                       "any": np.flatnonzero(np.asarray(self.world.geom_owner, dtype=object) == ROBOT)}
         self.substeps = max(1, round(self.control_dt / model.opt.timestep))
         self._action = np.zeros(4)  # robosuite action: (dx, dy, dz) metres, gripper (+1 closes, -1 opens)
@@ -456,23 +467,6 @@ class RobosuiteRobot(Robot):
         self.world.step(self.substeps)
         return self.state()
 
-    def state(self) -> RobotState:
-        self.world.forward()
-        data, p = self.world.data, self.panda
-        fingers = data.qpos[p.finger_qadr]
-        return RobotState(joints=data.qpos[p.qadr].copy(), ee_pos=data.site_xpos[p.site].copy(),
-                          gripper_opening=float(fingers[0] - fingers[1]),  # finger 1 opens +, finger 2 opens -
-                          contacts={part: self._touched(part) for part in self.parts})
-
-    def touching(self, body: str, part: str = "any") -> bool:
-        check_part(part)
-        if body not in (TABLE, GROUND) and body not in self.body_names:
-            raise unknown_name("body", body, self.body_names)
-        return body in self._touched(part)
-
-    def _touched(self, part: str) -> list[str]:
-        return self.world.touching(self.parts[part], exclude=(ROBOT,))
-
 
 # ------------------------------------------------------------------------------------------------
 # the Simulation interface
@@ -500,7 +494,9 @@ class RobosuiteSimulation(MujocoSimulation):
             raise SpecError(f"scene must be a physint_backends.Scene, got {type(scene).__name__}")
         try:
             env = SceneEnv(scene)
-        except ValueError as exc:  # MuJoCo's compiler, e.g. a degenerate mesh
+        except SpecError:
+            raise
+        except ValueError as exc:  # MuJoCo's compiler
             raise SpecError(f"robosuite cannot build this scene: {exc}") from None
         try:
             model, data = env.sim.model._model, env.sim.data._data
@@ -513,6 +509,8 @@ class RobosuiteSimulation(MujocoSimulation):
                 model, body_ids, names, table_geoms=table, ground_geoms=[floor] if floor >= 0 else [],
                 robot_root=model.body(env.robots[0].robot_model.root_body).id if env.robots else None)
             draw_robot(model, np.asarray(geom_owner, dtype=object) == ROBOT, self.robot_visual)
+            if scene.robot is not None:
+                paint_table(model, table, scene.robot.table_rgba)
             world = MujocoWorld(model, data, body_ids, geom_label, geom_owner)
             robot = None
             if scene.robot is not None:
@@ -549,6 +547,23 @@ def configure_model(model: mujoco.MjModel, scene: Scene, textures: dict[str, tup
     model.vis.global_.offheight = max([model.vis.global_.offheight] + [c.height for c in scene.cameras])
     model.site_group[:] = HIDDEN_GROUP  # robosuite's sites are markers, not part of the scene
     upload_textures(model, textures)
+    paint_sky(model, scene.background)
+
+
+def paint_sky(model: mujoco.MjModel, rgb) -> None:
+    """Fill robosuite's skybox textures with the scene's flat background colour, as on the other backends."""
+    colour = np.round(np.asarray(rgb) * 255).astype(np.uint8)
+    for t in np.flatnonzero(model.tex_type == mujoco.mjtTexture.mjTEXTURE_SKYBOX):
+        adr, n = model.tex_adr[t], model.tex_width[t] * model.tex_height[t]
+        pixels = model.tex_data[adr:adr + n * model.tex_nchannel[t]].reshape(n, model.tex_nchannel[t])
+        pixels[:, :3] = colour
+
+
+def paint_table(model: mujoco.MjModel, table_geoms, rgba) -> None:
+    """The table in the spec's plain colour instead of robosuite's ceramic texture."""
+    for g in table_geoms:
+        model.geom_matid[g] = -1
+        model.geom_rgba[g] = rgba
 
 
 def draw_robot(model: mujoco.MjModel, robot: np.ndarray, robot_visual: str) -> None:

@@ -288,6 +288,7 @@ class Robot:
     base_pos: tuple[float, float, float] = (-0.56, 0.0, 0.0)  # on the table top, facing +x
     table_height: float = 0.8  # table top height (m); 0 puts the robot on the ground
     table_size: tuple[float, float] = (0.8, 0.8)  # table top (x, y) in metres, centred at the origin
+    table_rgba: tuple[float, float, float, float] = (0.72, 0.58, 0.42, 1.0)
     control_hz: float = 25.0
     max_delta: float = 0.05  # m per control step, per axis
     init_ee_pos: tuple[float, float, float] | None = None  # world; default: 0.2 m above the table centre
@@ -298,6 +299,7 @@ class Robot:
         self.base_pos = _finite_vector(self.base_pos, 3, "robot base_pos")  # type: ignore[assignment]
         if not math.isfinite(self.table_height) or self.table_height < 0:
             raise SpecError(f"robot table_height must be >= 0, got {self.table_height}")
+        self.table_rgba = _rgba(self.table_rgba, "robot table_rgba")
         self.control_hz = _positive(self.control_hz, "robot control_hz")
         self.max_delta = _positive(self.max_delta, "robot max_delta")
         if self.init_ee_pos is None:
@@ -316,9 +318,11 @@ class Scene:
     robot: Robot | None = None
     gravity: tuple[float, float, float] = (0.0, 0.0, -9.81)
     timestep: float = 0.002  # physics step in seconds
+    background: tuple[float, float, float] = (0.72, 0.78, 0.86)  # colour of the sky behind everything
 
     def __post_init__(self) -> None:
         self.gravity = _finite_vector(self.gravity, 3, "scene gravity")  # type: ignore[assignment]
+        self.background = _rgba(self.background, "scene background")[:3]  # type: ignore[assignment]
         self.timestep = _positive(self.timestep, "scene timestep")
         for kind, items in (("body", self.bodies), ("camera", self.cameras)):
             names = [x.name for x in items]

@@ -193,3 +193,16 @@ def test_bad_action_is_rejected_without_stepping(backend):
         assert sim.time == t
         frame = sim.render("front", segmentation=True)
         assert (frame.segmentation == -2).sum() > 0  # the robot is visible and labelled -2
+
+
+def test_background_and_table_look_the_same(backend):
+    """Pixels showing nothing are the scene's background colour; the robot's table has its spec colour."""
+    robot = pb.RobotSpec()
+    cam = Camera("front", pos=(1.2, 0.0, robot.table_height + 0.3), lookat=(0.0, 0.0, robot.table_height + 0.3),
+                 width=32, height=32)
+    scene = Scene(robot=robot, cameras=[cam], background=(0.2, 0.4, 0.6))
+    with pb.make(backend, scene) as sim:
+        frame = sim.render("front", segmentation=True)
+    sky = frame.rgb[0].astype(float)  # the top row looks above the horizon
+    assert np.abs(sky - np.array([0.2, 0.4, 0.6]) * 255).max() < 8
+    assert (frame.segmentation[-1] == -2).all()  # the bottom row shows the table: labelled robot

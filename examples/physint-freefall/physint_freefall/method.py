@@ -85,14 +85,16 @@ class FreeFallConfig:
 
 # -- simulation -----------------------------------------------------------------------------------
 
-def drop_scene(shape: str, size: float, height: float, timestep: float, image_size: int):
-    """A body whose lowest point is ``height`` above the ground, and a camera that sees the fall."""
+def drop_scene(shape: str, size: float, height: float, timestep: float, image_size: int, frame_top: float = 2.1):
+    """A body whose lowest point is ``height`` above the ground, and a camera that frames 0..frame_top metres."""
     from physint_backends import Body, Camera, Scene
 
     z = height + size
     body = Body.sphere("object", size, pos=(0, 0, z), rgba=(0.9, 0.3, 0.2, 1)) if shape == "sphere" else \
         Body.box("object", (2 * size,) * 3, pos=(0, 0, z), rgba=(0.2, 0.4, 0.9, 1))
-    camera = Camera("side", pos=(1.8, 0.0, 1.05), lookat=(0.0, 0.0, 1.05), fovy=70, width=image_size, height=image_size)
+    middle = frame_top / 2
+    camera = Camera("side", pos=(1.5 * frame_top, 0.0, middle), lookat=(0.0, 0.0, middle),
+                    fovy=math.degrees(2 * math.atan(0.6 / 1.5)), width=image_size, height=image_size)
     return Scene(bodies=[body], cameras=[camera], timestep=timestep)
 
 
@@ -100,7 +102,10 @@ def simulate_drop(ctx: Context, shape: str, size: float, height: float, frames: 
                   fps: float = 25.0) -> tuple[float, np.ndarray, list[np.ndarray]]:
     """Simulated time until the object touches the ground, its first frame, and (optionally) a video."""
     cfg = ctx.config.data
-    scene = drop_scene(shape, size, height, cfg.timestep, cfg.image_size if not frames else 128)
+    if frames:  # a video frames this drop closely; dataset snapshots all frame the highest drop
+        scene = drop_scene(shape, size, height, cfg.timestep, 160, frame_top=height + 4 * size)
+    else:
+        scene = drop_scene(shape, size, height, cfg.timestep, cfg.image_size, frame_top=cfg.max_height + 2 * cfg.max_size)
     video: list[np.ndarray] = []
     limit = 1.5 * math.sqrt(2 * cfg.max_height / G) + 0.5
     every = max(1, int(round(1.0 / (fps * cfg.timestep))))
