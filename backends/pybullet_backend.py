@@ -221,8 +221,12 @@ class _Live:
     origin_pos: tuple[float, float, float]  # body frame in the inertial frame (the inverse)
     origin_orn: tuple[float, float, float, float]
     at_origin: bool
-    n_shapes: int
+    n_shapes: int  # visual shapes on the base
     frozen: bool = False
+    link_shapes: tuple[int, ...] = ()  # visual shapes on each extra (fixed, visual-only) link
+
+
+MAX_VISUAL_SHAPES = 16  # createVisualShapeArray crashes PyBullet 3.2.7 beyond 16 shapes
 
 
 class PybulletSimulation(Simulation):
@@ -323,14 +327,28 @@ class PybulletSimulation(Simulation):
     def _add_body(self, body: Body) -> _Live:
         """One spec body as one Bullet body (a compound shape when it has several geoms)."""
         p = self._p
+        links: dict = {}
+        chunks: list[list[Geom]] = []
         if len(body.geoms) == 1:
             col = p.createCollisionShape(**self._shape_args(body.geoms[0], "collision"))
             vis = p.createVisualShape(**self._shape_args(body.geoms[0], "visual"))
         else:
             col_args = [self._shape_args(g, "collision") for g in body.geoms]
-            vis_args = [self._shape_args(g, "visual") for g in body.geoms]
             col = p.createCollisionShapeArray(**_stack_args(col_args, "collision"))
-            vis = p.createVisualShapeArray(**_stack_args(vis_args, "visual"))
+            chunks = [body.geoms[i:i + MAX_VISUAL_SHAPES] for i in range(0, len(body.geoms), MAX_VISUAL_SHAPES)]
+            if len(chunks) > 1 and not body.static:
+                raise SpecError(f"body {body.name!r}: the pybullet backend draws at most {MAX_VISUAL_SHAPES} geoms "
+                                f"of a moving body, got {len(body.geoms)}")
+            vis = p.createVisualShapeArray(**_stack_args([self._shape_args(g, "visual") for g in chunks[0]], "visual"))
+            if len(chunks) > 1:  # a static body's further geoms are drawn by fixed, visual-only links
+                n = len(chunks) - 1
+                links = dict(
+                    linkMasses=[0.0] * n, linkCollisionShapeIndices=[-1] * n,
+                    linkVisualShapeIndices=[p.createVisualShapeArray(**_stack_args(
+                        [self._shape_args(g, "visual") for g in chunk], "visual")) for chunk in chunks[1:]],
+                    linkPositions=[[0, 0, 0]] * n, linkOrientations=[[0, 0, 0, 1]] * n,
+                    linkInertialFramePositions=[[0, 0, 0]] * n, linkInertialFrameOrientations=[[0, 0, 0, 1]] * n,
+                    linkParentIndices=[0] * n, linkJointTypes=[pybullet.JOINT_FIXED] * n, linkJointAxis=[[0, 0, 1]] * n)
         props = None if body.static else mass_properties(body)
         com_pos = tuple(float(v) for v in props.com) if props else (0.0, 0.0, 0.0)
         com_orn = props.axes_xyzw if props else (0.0, 0.0, 0.0, 1.0)
@@ -338,7 +356,7 @@ class PybulletSimulation(Simulation):
                                 baseCollisionShapeIndex=col, baseVisualShapeIndex=vis,
                                 basePosition=list(body.pos), baseOrientation=to_xyzw(body.quat),
                                 baseInertialFramePosition=list(com_pos), baseInertialFrameOrientation=list(com_orn),
-                                useMaximalCoordinates=True)
+                                useMaximalCoordinates=not links, **links)
         curved = any(g.shape in CURVED for g in body.geoms)
         dynamics = dict(lateralFriction=math.sqrt(body.friction), frictionAnchor=1,
                         rollingFriction=ROLLING_FRICTION if curved else 0.0,
@@ -350,12 +368,14 @@ class PybulletSimulation(Simulation):
         p.changeDynamics(uid, -1, **dynamics)
         for i, geom in enumerate(body.geoms):
             if geom.texture is not None:
-                p.changeVisualShape(uid, -1, shapeIndex=i if len(body.geoms) > 1 else -1,
+                link, shape = divmod(i, MAX_VISUAL_SHAPES)
+                p.changeVisualShape(uid, link - 1, shapeIndex=shape if len(body.geoms) > 1 else -1,
                                     textureUniqueId=self._texture(geom.texture))
         origin_pos, origin_orn = invert(com_pos, com_orn)
         return _Live(uid=uid, static=body.static, props=props, com_pos=com_pos, com_orn=com_orn,
                      origin_pos=origin_pos, origin_orn=origin_orn,
-                     at_origin=props is None or props.at_origin, n_shapes=len(body.geoms))
+                     at_origin=props is None or props.at_origin, n_shapes=len(chunks[0]) if chunks else 1,
+                     link_shapes=tuple(len(c) for c in chunks[1:]))
 
     def _shape_args(self, geom: Geom, kind: str) -> dict:
         """Keyword arguments of create{Collision,Visual}Shape for one geom (spec sizes are full lengths)."""
@@ -627,6 +647,9 @@ class PybulletSimulation(Simulation):
             raise SpecError(f"rgba of {name!r} must be 3 or 4 numbers in [0, 1], got {rgba!r}") from None
         for i in range(live.n_shapes):
             self._p.changeVisualShape(live.uid, -1, shapeIndex=i if live.n_shapes > 1 else -1, rgbaColor=colour)
+        for link, n in enumerate(live.link_shapes):
+            for i in range(n):
+                self._p.changeVisualShape(live.uid, link, shapeIndex=i, rgbaColor=colour)
 
     # -- lifecycle -----------------------------------------------------------------------------
     def reset(self, scene: Scene | None = None) -> None:

@@ -222,6 +222,16 @@ class Camera:
         if np.linalg.norm(np.subtract(self.lookat, self.pos)) < 1e-9:
             raise SpecError(f"camera {self.name!r}: pos and lookat must differ")
 
+    @classmethod
+    def from_pose(cls, name: str, pos, quat, **kw) -> Camera:
+        """A camera at ``pos`` with orientation ``quat`` (w, x, y, z), looking along its local -z, y up."""
+        w, x, y, z = _unit_quat(quat, f"camera {name!r} quat")
+        rot = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+        p = np.asarray(_finite_vector(pos, 3, f"camera {name!r} pos"))
+        return cls(name, pos=tuple(p), lookat=tuple(p - rot[:, 2]), up=tuple(rot[:, 1]), **kw)
+
     def rotation(self) -> np.ndarray:
         """World-from-camera rotation (columns: camera x right, y up, z backwards, OpenGL convention)."""
         forward = np.subtract(self.lookat, self.pos)
