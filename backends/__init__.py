@@ -15,7 +15,7 @@ from importlib.metadata import PackageNotFoundError, version
 from physint_cli import hookimpl
 from physint_cli.registry import Backend
 
-from .base import Frame, Robot, RobotState, Simulation  # noqa: F401
+from .base import Frame, Robot, RobotState, Simulation, SimulationError  # noqa: F401
 from .spec import Body, Camera, Geom, Ground, Light, Scene, SpecError, Texture  # noqa: F401
 from .spec import Robot as RobotSpec  # noqa: F401
 
@@ -97,5 +97,5 @@ def register_backends(register):
 
 
 __all__ = ["make", "simulation_class", "Scene", "Body", "Geom", "Camera", "Light", "Ground", "Texture",
-           "RobotSpec", "Simulation", "Frame", "Robot", "RobotState", "SpecError", "BUILTIN"]
+           "RobotSpec", "Simulation", "SimulationError", "Frame", "Robot", "RobotState", "SpecError", "BUILTIN"]
 

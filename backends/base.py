@@ -25,6 +25,10 @@ import numpy as np
 
 from .spec import Camera, Scene, SpecError, _finite_vector, _unit_quat, unknown_name
 
+class SimulationError(RuntimeError):
+    """The simulator failed on this world (not the user's input); rebuild it to go on."""
+
+
 SEG_BACKGROUND = -1
 SEG_ROBOT = -2
 

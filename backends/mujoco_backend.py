@@ -31,7 +31,7 @@ ensure_headless_gl()  # before mujoco picks its OpenGL backend (no-op when MUJOC
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
-from .base import SEG_BACKGROUND, SEG_ROBOT, Frame, Simulation  # noqa: E402
+from .base import SimulationError, SEG_BACKGROUND, SEG_ROBOT, Frame, Simulation  # noqa: E402
 from .spec import Body, Camera, Geom, Scene, SpecError, Texture, _rgba  # noqa: E402
 
 GROUND = "ground"
@@ -681,7 +681,10 @@ class MujocoSimulation(Simulation):
     def step(self, n: int = 1) -> None:
         if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 0:
             raise SpecError(f"step count must be a non-negative integer, got {n!r}")
-        self.world.step(int(n))
+        try:
+            self.world.step(int(n))
+        except mujoco.FatalError as exc:  # e.g. a collision routine's contact overflow: this world is lost
+            raise SimulationError(f"MuJoCo failed at t = {self.world.time:.3f} s: {exc}") from None
 
     # -- bodies ------------------------------------------------------------------------------
     def get_pose(self, name: str) -> tuple[np.ndarray, np.ndarray]:

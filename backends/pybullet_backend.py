@@ -236,7 +236,7 @@ class PybulletSimulation(Simulation):
 
     * ``solver_iterations``: constraint solver iterations per step (stacks need many);
     * ``robot_visual``: ``"collision"`` draws the Panda with its low-poly collision meshes
-      (much faster TinyRenderer images), ``"mesh"`` with its detailed visual meshes;
+      (much faster TinyRenderer images), ``"full"`` with its detailed visual meshes (as on the other backends);
     * ``near``, ``far``: camera clipping planes in metres (background depth reads ``far``).
     """
 
@@ -246,8 +246,8 @@ class PybulletSimulation(Simulation):
                  near: float = 0.01, far: float = 20.0):
         if not isinstance(scene, Scene):
             raise SpecError(f"PybulletSimulation needs a physint_backends.spec.Scene, got {type(scene).__name__}")
-        if robot_visual not in ("collision", "mesh"):
-            raise SpecError(f"robot_visual must be 'collision' or 'mesh', got {robot_visual!r}")
+        if robot_visual not in ("collision", "full"):
+            raise SpecError(f"robot_visual must be 'collision' or 'full', got {robot_visual!r}")
         if not (isinstance(solver_iterations, int) and solver_iterations >= 1):
             raise SpecError(f"solver_iterations must be a positive integer, got {solver_iterations!r}")
         if not (0 < near < far and math.isfinite(far)):

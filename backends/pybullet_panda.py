@@ -130,7 +130,7 @@ class PybulletPanda(Robot):
 
     def _urdf(self) -> str:
         """The Panda URDF; with ``robot_visual="collision"`` a copy drawing the low-poly collision meshes."""
-        if self._sim.robot_visual == "mesh":
+        if self._sim.robot_visual == "full":
             return PANDA_URDF
         meshes = os.path.join(os.path.dirname(PANDA_URDF), "meshes") + os.sep
 

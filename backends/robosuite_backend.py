@@ -23,10 +23,12 @@ argument checking), so both backends behave alike by construction. In particular
   its visual meshes. robosuite's own cameras are off (``use_camera_obs=False``: ~20 control
   steps/s).
 
-Physics is robosuite's (its solver options: Euler integration, elliptic cones, ``impratio=20``;
-its robot, gripper and controller parameters) with two exceptions that keep the backends
-equivalent: robosuite's air (``density``, ``viscosity``) is off, since a scene spec has no air;
-and the contacts of scene bodies, ground and table are as stiff as on the MuJoCo backend
+Physics is robosuite's (its elliptic friction cones; its robot, gripper and controller
+parameters) with four exceptions that keep the backends equivalent: robosuite's air
+(``density``, ``viscosity``) is off, since a scene spec has no air; its ``impratio=20`` and
+Euler integrator become MuJoCo's default ``impratio=1`` and the MuJoCo backend's implicitfast
+integrator (with the stiff contacts below, robosuite's settings let a 6-cube stack jump apart
+within a second); and the contacts of scene bodies, ground and table are as stiff as on the MuJoCo backend
 (``contact_solref``: MuJoCo's default lets stacks that should stand lean and topple).
 
 Conventions shared with the MuJoCo backend: the arm's base (link 0) stands at
@@ -536,6 +538,8 @@ def configure_model(model: mujoco.MjModel, scene: Scene, textures: dict[str, tup
     model.opt.timestep = scene.timestep
     model.opt.gravity[:] = scene.gravity
     model.opt.density = 0.0  # no air
+    model.opt.impratio = 1.0  # robosuite's 20 with stiff contacts makes tall stacks explode
+    model.opt.integrator = mujoco.mjtIntegrator.mjINT_IMPLICITFAST  # as on the MuJoCo backend
     model.opt.viscosity = 0.0
     model.vis.quality.shadowsize = 0  # shadow maps and multisampling cost 30x on Mesa
     model.vis.quality.offsamples = 0

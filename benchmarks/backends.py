@@ -2,8 +2,9 @@
 
     python benchmarks/backends.py [--quick] [--json FILE] [--backends mujoco,pybullet,robosuite]
 
-Measured on one core (BLAS/OpenMP and Mesa's llvmpipe limited to one thread, one process), per
-backend of ``physint_backends``:
+Measured on one core (one process; OpenMP/BLAS at one thread; Mesa's llvmpipe rasterising in the
+calling thread, ``LP_NUM_THREADS=0``; each can be overridden from the environment), per backend
+of ``physint_backends``:
 
 1. physics steps/s of a stable single-stranded stack of 6 cubes, one ``step(1)`` per call and
    ``step(100)`` per call;
@@ -12,21 +13,24 @@ backend of ``physint_backends``:
    the same with ``sim.reset(new_scene)`` on a live simulation instead of ``make``/``close``;
 4. control steps/s of a Panda scene (``scene.robot = RobotSpec()``, one 4 cm cube on the table,
    one 64x64 camera): ``sim.robot.act([dx, dy, dz, g])`` plus one 64x64 render; and without the
-   render.
+   render;
+5. renders/s of that Panda scene with the robot's detailed visual meshes (``robot_visual``
+   ``"full"``, or ``"mesh"`` on PyBullet) beside the default low-poly drawing.
 
 The raw references are measured in the same run, interleaved with each backend figure (rounds of
 backend / reference; each figure is the best round, which discards slow-downs caused by other
 processes on a shared machine):
 
 * raw MuJoCo: the same stack hand-written as an MJCF string (same timestep, integrator, friction
-  cones and contact stiffness as the MuJoCo backend), stepped with ``mujoco.mj_step`` and
+  cones and contact stiffness as the MuJoCo backend, the same flat sky colour as a flat skybox
+  texture; one extra row shows raw MuJoCo with a black background instead), stepped with ``mujoco.mj_step`` and
   rendered with ``mujoco.Renderer`` with ``shadowsize=0 offsamples=0`` and no reflections, the
   fastest reasonable direct use of MuJoCo; its scene "build" is ``MjModel.from_xml_string`` +
   ``MjData`` + 10 ``mj_step``;
 * raw robosuite for the Panda rows: robosuite's own ``Lift`` environment (Panda, default
   ``OSC_POSE`` controller, ``control_freq`` set to the spec's 25 Hz so that a control step covers
-  the same simulated time), ``env.step`` with a zero action, with its own 64x64 camera
-  observation (``use_camera_obs=True``) or without any camera.
+  the same simulated time, ``hard_reset=False``, see :class:`RawLift`), ``env.step`` with a zero
+  action, with its own 64x64 camera observation (``use_camera_obs=True``) or without any camera.
 
 stdout carries the results (a Markdown table and notes); stderr carries progress.
 Exit code 0 when every measurement ran (goals met or not), 1 when a backend failed.
@@ -37,9 +41,11 @@ from __future__ import annotations
 import os
 
 # -- one core: set before numpy, torch, mujoco or Mesa start their thread pools ----------------
-for _var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMEXPR_NUM_THREADS",
-             "LP_NUM_THREADS"):  # LP_NUM_THREADS: Mesa llvmpipe's rasteriser threads
+for _var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS", "NUMEXPR_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
+# Mesa llvmpipe's rasteriser threads: 0 rasterises in the calling thread (one core, and the
+# fastest and steadiest here: 1 adds a hand-off to a worker thread, ~45% slower at 64x64)
+os.environ.setdefault("LP_NUM_THREADS", "0")
 if "MUJOCO_GL" not in os.environ and not os.environ.get("DISPLAY"):
     os.environ["MUJOCO_GL"] = "egl"  # headless, as physint_backends does
 if os.environ.get("MUJOCO_GL") == "egl":
@@ -48,6 +54,7 @@ if os.environ.get("MUJOCO_GL") == "egl":
 import argparse  # noqa: E402
 import contextlib  # noqa: E402
 import datetime  # noqa: E402
+import gc  # noqa: E402
 import json  # noqa: E402
 import logging  # noqa: E402
 import math  # noqa: E402
@@ -70,6 +77,7 @@ RENDER_GOAL_RATIO = 0.5  # stack-scene rendering within 2x of raw MuJoCo
 CONTROL_GOAL = 100.0  # control steps/s with a 64x64 camera, on the MuJoCo and robosuite backends
 SCENES_GOAL = 2000.0  # "thousands of small scenes per minute"
 CONTROL_GOAL_BACKENDS = ("mujoco", "robosuite")
+DETAILED_ROBOT = {"mujoco": "full", "pybullet": "mesh", "robosuite": "full"}  # robot_visual option values
 
 
 def log(msg: str) -> None:
@@ -156,8 +164,20 @@ def stack_camera(name: str, size: int):
     return Camera(name, pos=(0.8, 0.0, 0.35), lookat=(0.0, 0.0, 0.18), fovy=45.0, width=size, height=size)
 
 
-def stack_mjcf(offsets: np.ndarray, cameras: bool = True) -> str:
-    """The stack scene by hand: what someone using MuJoCo directly would write, with fast rendering."""
+def scene_background() -> tuple[float, float, float] | None:
+    """The flat sky colour the backends draw behind everything (``Scene.background``), if the spec has one."""
+    from physint_backends import Scene
+
+    background = getattr(Scene(), "background", None)
+    return None if background is None else tuple(float(c) for c in background)[:3]  # type: ignore[return-value]
+
+
+def stack_mjcf(offsets: np.ndarray, cameras: bool = True, sky: bool = True) -> str:
+    """The stack scene by hand: what someone using MuJoCo directly would write, with fast rendering.
+
+    With ``sky``, the backends' flat background colour is a flat skybox (MuJoCo's only way to
+    colour the background); without it, the background is black.
+    """
     solref = f"{2.5 * TIMESTEP:g} 1"  # the MuJoCo backend's stiff contacts (stacks stand)
     bodies = "\n".join(
         f'    <body pos="{x:.6f} {y:.6f} {CUBE * (i + 0.5):.6f}"><freejoint/>'
@@ -169,6 +189,12 @@ def stack_mjcf(offsets: np.ndarray, cameras: bool = True) -> str:
             rot = stack_camera(name, size).rotation()  # columns: right, up, backwards
             xyaxes = " ".join(f"{v:.9f}" for v in (*rot[:, 0], *rot[:, 1]))
             cams += f'    <camera name="{name}" pos="0.8 0 0.35" xyaxes="{xyaxes}" fovy="45"/>\n'
+    background = scene_background() if sky else None
+    asset = ""
+    if background is not None:
+        rgb = " ".join(f"{c:g}" for c in background)
+        asset = (f'  <asset><texture type="skybox" builtin="flat" rgb1="{rgb}" rgb2="{rgb}" width="8" height="8"/>'
+                 f'</asset>\n')
     return f"""<mujoco model="raw_stack">
   <option timestep="{TIMESTEP}" integrator="implicitfast" cone="elliptic"/>
   <visual>
@@ -176,7 +202,7 @@ def stack_mjcf(offsets: np.ndarray, cameras: bool = True) -> str:
     <headlight active="0"/>
   </visual>
   <default><geom condim="3" friction="0.8 0.005 0.0001" solref="{solref}"/></default>
-  <worldbody>
+{asset}  <worldbody>
     <light directional="true" pos="0 0 3" dir="0 0 -1" diffuse="0.7 0.7 0.7" ambient="0.3 0.3 0.3"
            specular="0.1 0.1 0.1" castshadow="false"/>
     <geom name="ground" type="plane" size="5 5 0.1" rgba="0.8 0.8 0.8 1"/>
@@ -225,6 +251,17 @@ class RawMujoco:
         self.start = self.data.qpos.copy()
         self.renderers = {size: mujoco.Renderer(self.model, size, size) for size in (64, 128)}
         self.rng = np.random.default_rng(0)
+        self.first_frame = self.render(64)()  # the stack as built, to compare each backend's image with
+        self.sky = scene_background() is not None
+        if self.sky:  # the same scene with a black background, to show what the flat sky costs
+            self.model_nosky = mujoco.MjModel.from_xml_string(stack_mjcf(stack_offsets(None), sky=False))
+            self.data_nosky = mujoco.MjData(self.model_nosky)
+            mujoco.mj_forward(self.model_nosky, self.data_nosky)
+            self.renderer_nosky = mujoco.Renderer(self.model_nosky, 64, 64)
+
+    def render_nosky(self) -> np.ndarray:
+        self.renderer_nosky.update_scene(self.data_nosky, camera="cam64")
+        return self.renderer_nosky.render()
 
     def step1(self) -> None:
         self.mujoco.mj_step(self.model, self.data)
@@ -256,6 +293,9 @@ class RawMujoco:
         for r in self.renderers.values():
             r.close()
         self.renderers = {}
+        if self.sky:
+            self.renderer_nosky.close()
+            self.sky = False
 
 
 def import_robosuite():
@@ -275,24 +315,46 @@ def import_robosuite():
 
 
 class RawLift:
-    """robosuite's own Lift task, stepped with a zero action (with or without its camera observation)."""
+    """robosuite's own Lift task, stepped with a zero action (with or without its camera observation).
+
+    ``hard_reset=False``: robosuite's default hard reset rebuilds the MjSim and its OpenGL
+    render context, and the old context is freed later by the garbage collector, whatever
+    OpenGL context is current then; in a process with other contexts that deletes another
+    context's framebuffer, after which robosuite "renders" garbage at ~250 steps/s ("invalid
+    framebuffer operation"). Without a hard reset the environment keeps its one context.
+    """
 
     def __init__(self, camera: bool, control_hz: float):
         robosuite = import_robosuite()
         state = np.random.get_state()
         try:
+            common = dict(robots="Panda", has_renderer=False, control_freq=control_hz, ignore_done=True,
+                          hard_reset=False)
             if camera:
-                self.env = robosuite.make("Lift", robots="Panda", use_camera_obs=True, camera_heights=64,
-                                          camera_widths=64, has_renderer=False, has_offscreen_renderer=True,
-                                          control_freq=control_hz, ignore_done=True)
+                self.env = robosuite.make("Lift", use_camera_obs=True, camera_heights=64, camera_widths=64,
+                                          has_offscreen_renderer=True, **common)
             else:
-                self.env = robosuite.make("Lift", robots="Panda", use_camera_obs=False, has_renderer=False,
-                                          has_offscreen_renderer=False, control_freq=control_hz, ignore_done=True)
+                self.env = robosuite.make("Lift", use_camera_obs=False, has_offscreen_renderer=False, **common)
+            self.env.reset()
         finally:
             np.random.set_state(state)
-        self.env.reset()
+        gc.collect()  # nothing of robosuite's left for the collector to free mid-measurement
         self.zero = np.zeros(self.env.action_dim)
         self.camera = camera
+        if camera:
+            self.check_rendering()
+
+    def check_rendering(self) -> None:
+        """Fail loudly if robosuite's camera renders into a broken framebuffer (see the class docstring)."""
+        from OpenGL import GL
+
+        self.env.sim._render_context_offscreen.gl_ctx.make_current()
+        while GL.glGetError() != GL.GL_NO_ERROR:  # clear stale error flags
+            pass
+        self.step()
+        error = GL.glGetError()
+        if error != GL.GL_NO_ERROR:
+            raise RuntimeError(f"robosuite's offscreen rendering raised OpenGL error {error:#x}")
 
     def step(self) -> None:
         if self.camera:
@@ -347,7 +409,8 @@ def table(rows: list[Row]) -> str:
     header = ["measure", "backend", "figure", "raw reference", "ratio", "goal", "met?"]
     body = []
     for r in rows:
-        ratio = "—" if r.ratio is None else f"{r.ratio:.2f}"
+        # three decimals where the goal is a ratio, so that a ratio just under it never reads as met
+        ratio = "—" if r.ratio is None else f"{r.ratio:.3f}" if r.goal.startswith("ratio") else f"{r.ratio:.2f}"
         met = "—" if r.met is None else ("yes" if r.met else "**no**")
         figure = "error" if r.figure is None else f"{fmt(r.figure)} {r.unit}"
         raw = "—" if r.raw is None else f"{fmt(r.raw)} ({r.raw_name})"
@@ -458,6 +521,8 @@ class Bench:
             sim = pb.make(name, stack_scene(stack_offsets(None)))
             try:
                 start = {n: sim.get_pose(n)[0] for n in sim.body_names}
+                first = sim.render("cam64").rgb  # the stack as built: the same picture as raw MuJoCo's?
+                image_diff = float(np.abs(first.astype(np.int16) - raw.first_frame).mean())
                 b1, r1 = self.pair(lambda: sim.step(1), raw.step1)
                 b100, r100 = self.pair(lambda: sim.step(100), raw.step100, per_call=(100, 100))
                 drift = max(float(np.linalg.norm(sim.get_pose(n)[0] - start[n])) for n in sim.body_names)
@@ -466,17 +531,23 @@ class Bench:
                 assert frame.rgb is not None and frame.rgb.shape == (64, 64, 3), "64x64 render has the wrong shape"
                 render64, raw64 = self.pair(lambda: sim.render("cam64"), raw.render(64))
                 render128, raw128 = self.pair(lambda: sim.render("cam128"), raw.render(128))
+                # the state did not change while rendering: the image must not have either
+                # (catches a renderer drawing into a broken framebuffer, which is fast and wrong)
+                again = sim.render("cam64").rgb
+                assert np.array_equal(again, frame.rgb), "64x64 renders of an unchanged state differ"
+                assert frame.rgb.std() > 1.0, "the 64x64 render is blank"
             finally:
                 sim.close()
             stable = drift < 0.01
             note = (f"stack stood through {simulated:,.0f} s simulated (max cube drift {drift * 1000:.1f} mm)"
                     if stable else f"STACK FELL during stepping: max cube displacement {drift:.3f} m after "
                                    f"{simulated:,.0f} s simulated")
+            render_note = f"64×64 image of the stack as built differs from raw MuJoCo's by {image_diff:.2f}/255 per channel"
             rows += [Row(specs[0][0], name, "steps/s", b1, r1, "raw MuJoCo", note=note),
                      Row(specs[1][0], name, "steps/s", b100, r100, "raw MuJoCo", note=note)]
             ratio = render64 / raw64
             rows.append(Row(specs[2][0], name, "renders/s", render64, raw64, "raw MuJoCo",
-                            goal=f"ratio ≥ {RENDER_GOAL_RATIO}", met=ratio >= RENDER_GOAL_RATIO))
+                            goal=f"ratio ≥ {RENDER_GOAL_RATIO}", met=ratio >= RENDER_GOAL_RATIO, note=render_note))
             rows.append(Row(specs[3][0], name, "renders/s", render128, raw128, "raw MuJoCo"))
         except Exception as exc:
             rows += self.failed(name, specs, exc)
@@ -540,7 +611,36 @@ class Bench:
             rows.append(Row(specs[1][0], name, "steps/s", nocam, raw_nocam, specs[1][2], note=note))
         except Exception as exc:
             rows += self.failed(name, specs, exc, goal=goal, first_goal_only=True)
+
+        # what the default low-poly robot drawing saves: the Panda scene drawn with detailed meshes
+        detailed = DETAILED_ROBOT[name]
+        specs = [(f"renders/s, Panda scene RGB 64×64, robot_visual={detailed!r}", "renders/s",
+                  "same backend, low-poly robot (default)")]
+        try:
+            log(f"[{name}] Panda scene with detailed robot meshes")
+            sim = pb.make(name, panda_scene())
+            t0 = time.perf_counter()
+            sim_detailed = pb.make(name, panda_scene(), robot_visual=detailed)
+            build_s = time.perf_counter() - t0
+            try:
+                full, low = self.pair(lambda: sim_detailed.render("front"), lambda: sim.render("front"))
+            finally:
+                sim_detailed.close()
+                sim.close()
+            rows.append(Row(specs[0][0], name, "renders/s", full, low, specs[0][2],
+                            note=f"Panda scene with robot_visual={detailed!r} built in {build_s:.2f} s"))
+        except Exception as exc:
+            rows += self.failed(name, specs, exc)
         return rows
+
+    def sky_cost(self) -> list[Row]:
+        """Raw MuJoCo with a black background beside raw MuJoCo with the backends' flat sky."""
+        if not self.raw.sky:
+            return []
+        log("[raw MuJoCo] the flat sky's cost")
+        nosky, sky = self.pair(self.raw.render_nosky, self.raw.render(64))
+        return [Row("renders/s, stack, RGB 64×64, black background (no sky)", "raw MuJoCo", "renders/s", nosky, sky,
+                    "raw MuJoCo with the flat sky")]
 
     def failed(self, name, specs, exc, goal="—", first_goal_only=False) -> list[Row]:
         message = f"{type(exc).__name__}: {exc}".splitlines()[0]
@@ -593,6 +693,8 @@ def main(argv: list[str] | None = None) -> int:
         for name in names:
             with stdout_to_stderr():
                 rows += bench.backend(name)
+        with stdout_to_stderr():
+            rows += bench.sky_cost()
     finally:
         with stdout_to_stderr():
             bench.close()
@@ -606,7 +708,8 @@ def main(argv: list[str] | None = None) -> int:
     print(f"machine: {info['cpu']}, {info['cores']} cores ({info['cores_usable']} usable); "
           f"load average {info['load_average'][0]} at start, {info['load_average_end'][0]} at end")
     print(f"one core: OMP_NUM_THREADS={info['threads']['OMP_NUM_THREADS']}, "
-          f"LP_NUM_THREADS={info['threads']['LP_NUM_THREADS']} (Mesa llvmpipe), one process")
+          f"LP_NUM_THREADS={info['threads']['LP_NUM_THREADS']} (Mesa llvmpipe; 0: in the calling thread), "
+          "one process")
     print(f"OpenGL (MUJOCO_GL={info['MUJOCO_GL']}): {info['gl']}")
     print(f"python {info['python']}; " + ", ".join(f"{k} {v}" for k, v in info["versions"].items()))
     print(f"each figure: best of {rounds} round(s) of {seconds / rounds:.2f} s, alternating with its reference")

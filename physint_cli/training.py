@@ -109,11 +109,14 @@ class FitResult:
 def fit(model, train_set, val_set, *, run, epochs: int, batch_size: int, lr: float, loss_fn: Callable,
         metric_fn: Callable, device: str = "cpu", resume: bool = False, optimizer: str = "adam",
         weight_decay: float = 0.0, num_workers: int = 0, seed: int = 0, higher_is_better: bool = False,
-        meta: dict[str, Any] | None = None, log: Callable[[str], None] = print) -> FitResult:
+        meta: dict[str, Any] | None = None, log: Callable[[str], None] = print,
+        make_optimizer: Callable[[Any], tuple[Any, Any]] | None = None) -> FitResult:
     """Supervised training with checkpoints every epoch, resume and DDP.
 
     ``loss_fn(model, batch) -> scalar loss``; ``metric_fn(model, loader) -> float`` on validation.
     ``meta`` is saved in every checkpoint (e.g. the model name and its constructor arguments).
+    ``make_optimizer(model) -> (optimizer, scheduler or None)`` replaces the built-in optimizers;
+    the scheduler is stepped once per epoch.
     """
     import torch
     from torch.utils.data import DataLoader, DistributedSampler
@@ -124,14 +127,22 @@ def fit(model, train_set, val_set, *, run, epochs: int, batch_size: int, lr: flo
     if d.enabled:
         model = torch.nn.parallel.DistributedDataParallel(model)
     params = [p for p in model.parameters() if p.requires_grad]
-    opt = {"adam": torch.optim.Adam, "rmsprop": torch.optim.RMSprop, "sgd": torch.optim.SGD}[optimizer](
-        params, lr=lr, weight_decay=weight_decay)
+    scheduler = None
+    if make_optimizer is not None:
+        opt, scheduler = make_optimizer(model)
+    else:
+        optimizers = {"adam": torch.optim.Adam, "rmsprop": torch.optim.RMSprop, "sgd": torch.optim.SGD}
+        if optimizer not in optimizers:
+            raise BadInput(f"optimizer {optimizer!r} is not known; valid: {', '.join(optimizers)}")
+        opt = optimizers[optimizer](params, lr=lr, weight_decay=weight_decay)
     start_epoch, best, history = 0, None, []
     last = run.checkpoint("last")
     if resume and last.exists():
         state = load_checkpoint(last, device)
         unwrap(model).load_state_dict(state["model"])
         opt.load_state_dict(state["optimizer"])
+        if scheduler is not None and state.get("scheduler"):
+            scheduler.load_state_dict(state["scheduler"])
         start_epoch, best, history = state["epoch"], state.get("best"), state.get("history", [])
         torch.set_rng_state(state["torch_rng"])
         log(f"resumed from {last} at epoch {start_epoch}")
@@ -153,6 +164,8 @@ def fit(model, train_set, val_set, *, run, epochs: int, batch_size: int, lr: flo
             opt.step()
             total += float(loss.detach()) * len(next(iter(batch.values())))
             count += len(next(iter(batch.values())))
+        if scheduler is not None:
+            scheduler.step()
         model.eval()
         with torch.no_grad():
             val = float(metric_fn(unwrap(model), val_loader))
@@ -164,6 +177,7 @@ def fit(model, train_set, val_set, *, run, epochs: int, batch_size: int, lr: flo
         if d.is_main:
             run.log_metrics(epoch + 1, **point)
             state = dict(model=unwrap(model).state_dict(), optimizer=opt.state_dict(), epoch=epoch + 1, best=best,
+                         scheduler=scheduler.state_dict() if scheduler is not None else None,
                          history=history, torch_rng=torch.get_rng_state(), meta=meta or {})
             if improved:
                 save_checkpoint(run.checkpoint("best"), **state)

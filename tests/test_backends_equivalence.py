@@ -206,3 +206,12 @@ def test_background_and_table_look_the_same(backend):
     sky = frame.rgb[0].astype(float)  # the top row looks above the horizon
     assert np.abs(sky - np.array([0.2, 0.4, 0.6]) * 255).max() < 8
     assert (frame.segmentation[-1] == -2).all()  # the bottom row shows the table: labelled robot
+
+
+def test_six_block_stack_stands(backend):
+    """Tall stacks are where solver settings show: six centred cubes must stand for 2 s."""
+    scene = Scene(bodies=stack([0.0] * 6))
+    with pb.make(backend, scene) as sim:
+        sim.advance(2.0)
+        top = sim.get_pose("b5")[0]
+        assert abs(top[2] - CUBE * 5.5) < 0.005 and abs(top[0]) < 0.005

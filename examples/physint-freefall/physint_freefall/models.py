@@ -15,10 +15,14 @@ def TimeToGroundMLP(hidden: int = 32, layers: int = 2):  # noqa: N802 (a constru
     return nn.Sequential(*blocks)
 
 
-def PixelMLP(in_shape=(3, 64, 64), num_outputs: int = 1, hidden: int = 64, pool: int = 8):  # noqa: N802
-    """Average-pool an image by ``pool`` and classify the pixels with a two-layer MLP."""
+def PixelMLP(in_size: int = 64, hidden: int = 64, pool: int = 8):  # noqa: N802
+    """A weak stability baseline: average-pool the image by ``pool`` and classify the pixels with an MLP.
+
+    Follows the stability method's model convention: float images (N, 3, in_size, in_size) in
+    [0, 1] -> one logit per image (N,), positive = unstable.
+    """
     import torch.nn as nn
 
-    c, h, w = in_shape
-    return nn.Sequential(nn.AvgPool2d(pool), nn.Flatten(), nn.Linear(c * (h // pool) * (w // pool), hidden), nn.ReLU(),
-                         nn.Linear(hidden, num_outputs))
+    side = max(1, in_size // pool)
+    return nn.Sequential(nn.AdaptiveAvgPool2d(side), nn.Flatten(), nn.Linear(3 * side * side, hidden), nn.ReLU(),
+                         nn.Linear(hidden, 1), nn.Flatten(0))

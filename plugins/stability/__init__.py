@@ -1,0 +1,54 @@
+"""stability: ShapeStacks (thesis Chapter 3, Groth et al., ECCV 2018).
+
+A visual classifier learns from images whether a single-stranded stack of shapes will stand,
+and is then used, with no physics engine in the loop, to localise instabilities, rank objects by
+stackability, build tall stacks and place counterweights. This module holds the hook
+implementations only; the chapter is told by the other modules:
+
+    config.py    the config and its tiny / small / paper presets
+    physics.py   Lemma 1 (Eq. 3.1) and the violation types VCOM and VPSF
+    scenes.py    ShapeStacks scenarios and their backend-neutral scenes
+    dataset.py   generating the dataset (Section 3.3, Table 3.1)
+    model.py     the predictors: compact CNN, AlexNet, Inception-v4 (Eq. 3.2)
+    augment.py   physically plausible augmentation
+    train.py     training (Section 3.4.1)
+    evaluate.py  accuracy (Table 3.3) and instability localisation (Section 3.4.2, Table 3.4)
+    deploy.py    stackability, stacking, counterbalancing (Section 3.5)
+"""
+
+from physint_cli import hookimpl
+from physint_cli.registry import MetricInfo, ModelInfo, SceneInfo
+
+
+@hookimpl
+def register_methods(register):
+    from .method import Stability
+
+    register(Stability())
+
+
+@hookimpl
+def register_scenes(register):
+    register(SceneInfo("cubes", method="stability", description="stacks of regular cubes (ShapeStacks Cubes)"))
+    register(SceneInfo("ccs", method="stability", description="stacks of cuboids, cylinders and spheres (ShapeStacks CCS)"))
+    register(SceneInfo("all", method="stability", description="both subsets (the thesis's test set)"))
+
+
+@hookimpl
+def register_models(register):
+    from . import model
+
+    register(ModelInfo("cnn", method="stability", build=model.compact_cnn,
+                       description="compact CNN, the CPU default (0.28M parameters)"))
+    register(ModelInfo("alexnet", method="stability", build=model.alexnet,
+                       description="AlexNet (Krizhevsky et al. 2012), the thesis's baseline"))
+    register(ModelInfo("inception-v4", method="stability", build=model.inception_v4,
+                       description="Inception-v4 (Szegedy et al. 2017), the thesis's reference model"))
+
+
+@hookimpl
+def register_metrics(register):
+    from .evaluate import accuracy_table
+
+    register(MetricInfo("stability_accuracy", method="stability", fn=accuracy_table,
+                        description="accuracy overall and per subset, height and violation type (Table 3.3)"))

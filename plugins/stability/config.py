@@ -1,0 +1,84 @@
+"""The stability method's config and its tiny / small / paper presets (thesis Chapter 3).
+
+``paper`` is the thesis's ShapeStacks: 20,000 scenarios split ~70/15/15, 16 cameras at 224x224,
+25 background textures, 6 object colours, 5 lighting conditions (Table 3.1); Inception-v4 trained
+from scratch with RMSProp for 80 epochs (Section 3.4.1); occlusion study on 1,500 images
+(Section 3.4.2); stacking over 50 episodes per scenario (Section 3.5.2).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from physint_cli.config import field_
+
+
+@dataclass
+class DataConfig:
+    scenarios: int = field_(2000, "scenarios over all splits (thesis: 20,000)")
+    train_fraction: float = field_(0.70, "fraction of scenarios in the train split")
+    val_fraction: float = field_(0.15, "fraction in the validation split (the rest is test)")
+    per_shard: int = field_(25, "scenarios per shard (work unit)")
+    cameras: int = field_(8, "cameras orbiting each stack (thesis: 16)")
+    resolution: int = field_(64, "image side in pixels (thesis: 224)")
+    textures: int = field_(25, "background textures (thesis: 25)")
+    lights: int = field_(5, "lighting conditions (thesis: 5)")
+    camera_jitter: float = field_(0.02, "camera position noise (m)")
+    sim_seconds: float = field_(2.0, "simulated seconds to decide whether a stack stands")
+    timestep: float = field_(0.002, "physics step (s)")
+    max_attempts: int = field_(20, "samples per scenario before giving up on simulator agreement")
+
+
+@dataclass
+class TrainConfig:
+    model: str = field_("cnn", "cnn (CPU default), alexnet or inception-v4 (paper)")
+    epochs: int = field_(12, "passes over the training images (thesis: 80)")
+    batch_size: int = field_(64, "images per batch")
+    optimizer: str = field_("adam", "adam, or rmsprop with the Inception-v4 paper's solver settings")
+    lr: float = field_(1e-3, "learning rate (rmsprop: the paper's schedule starts at 0.045)")
+    weight_decay: float = field_(1e-4, "L2 weight decay")
+    augment: bool = field_(True, "colour jitter, aspect ratio, crops, mirror, small rotations")
+    width: int = field_(32, "channels of the compact CNN's first layer")
+    input_size: int = field_(64, "network input side in pixels")
+    num_workers: int = field_(0, "DataLoader worker processes")
+
+
+@dataclass
+class EvalConfig:
+    occlusion_images: int = field_(150, "unstable test images for the occlusion study (thesis: 1,500)")
+    occlusion_sigma: float = field_(30.0, "Gaussian blur sigma at 224 px (scaled with the resolution)")
+    occlusion_patch: int = field_(14, "patch side at 224 px (scaled)")
+    occlusion_stride: int = field_(8, "patch stride at 224 px (scaled)")
+    cross_backend: str = field_("", "also test on this backend's renders of the same distribution ('' = off)")
+    batch_size: int = field_(128, "images per evaluation batch")
+
+
+@dataclass
+class DeployConfig:
+    episodes: int = field_(10, "stacking / counterbalancing episodes per scenario (thesis: 50)")
+    pool: int = field_(12, "objects in the stacking pool (thesis: 12)")
+    anneal_steps: int = field_(30, "simulated-annealing steps per placement")
+    anneal_radius: float = field_(0.03, "placement search radius around the trunk (m)")
+    cameras: int = field_(6, "cameras watching the stack while stacking (thesis: 6)")
+
+
+@dataclass
+class StabilityConfig:
+    data: DataConfig = field_(DataConfig(), "dataset generation (Section 3.3)")
+    train: TrainConfig = field_(TrainConfig(), "stability predictor (Section 3.4.1)")
+    eval: EvalConfig = field_(EvalConfig(), "evaluation (Sections 3.4.1-3.4.2)")
+    deploy: DeployConfig = field_(DeployConfig(), "stackability, stacking, counterbalancing (Section 3.5)")
+
+
+PRESETS = {
+    "tiny": {"data.scenarios": 48, "data.per_shard": 12, "data.cameras": 2, "data.resolution": 32,
+             "data.textures": 4, "data.sim_seconds": 1.5, "train.epochs": 3, "train.batch_size": 16,
+             "train.input_size": 32, "train.width": 8, "eval.occlusion_images": 4, "deploy.episodes": 1,
+             "deploy.pool": 4, "deploy.anneal_steps": 5},
+    "small": {},
+    "paper": {"data.scenarios": 20000, "data.per_shard": 50, "data.cameras": 16, "data.resolution": 224,
+              "train.model": "inception-v4", "train.epochs": 80, "train.batch_size": 32,
+              "train.optimizer": "rmsprop", "train.lr": 0.045, "train.weight_decay": 4e-5,
+              "train.input_size": 224, "train.num_workers": 8, "eval.occlusion_images": 1500,
+              "deploy.episodes": 50, "deploy.anneal_steps": 100},
+}

@@ -1,0 +1,130 @@
+"""Training the visual stability predictor (thesis Section 3.4.1).
+
+Images of initial, static stacks with their 0/1 labels (1 = unstable) train a CNN with the
+logistic loss of Eq. 3.2, with physically plausible augmentation (towers stay upright).
+"""
+
+from __future__ import annotations
+
+import inspect
+from typing import Any
+
+import numpy as np
+
+from physint_cli.errors import BadInput
+from physint_cli.method import Context
+
+FIELDS = ["image", "label"]
+
+
+def build_model(name: str, input_size: int, width: int):
+    """A registered stability model (``register_models``), given the input size (and width if it has one)."""
+    from physint_cli.plugins import get_plugins
+
+    models = get_plugins().models_for("stability")
+    if name not in models:
+        from physint_cli.errors import unknown
+
+        raise unknown("model for stability", name, models)
+    build = models[name].build
+    kwargs: dict[str, Any] = {"in_size": input_size}
+    if "width" in inspect.signature(build).parameters:
+        kwargs["width"] = width
+    return build(**kwargs), kwargs
+
+
+class ImageLabel:
+    """ShardedDataset record -> {"image": float (3, S, S) in [0, 1], "label": float ()}."""
+
+    def __init__(self, transform):
+        self.transform = transform
+
+    def __call__(self, record: dict[str, np.ndarray]) -> dict[str, Any]:
+        import torch
+
+        return {"image": self.transform(record["image"]), "label": torch.tensor(float(record["label"]))}
+
+
+def logits_of(model, images):
+    out = model(images)
+    return out.reshape(out.shape[0])
+
+
+def accuracy(model, loader) -> float:
+    import torch
+
+    correct, total = 0, 0
+    with torch.no_grad():
+        for batch in loader:
+            pred = (logits_of(model, batch["image"]) > 0).float()  # logit > 0 <=> P(unstable) > 0.5
+            correct += int((pred == batch["label"]).sum())
+            total += len(pred)
+    return correct / max(total, 1)
+
+
+def train(ctx: Context) -> dict[str, Any]:
+    import torch
+
+    from physint_cli.datasets import ShardedDataset
+    from physint_cli.runs import Run
+    from physint_cli.training import fit
+
+    from .augment import EvalTransform, TrainTransform
+    from .model import logistic_loss, rmsprop_for
+
+    cfg = ctx.config.train
+    name = ctx.options.get("model", cfg.model)
+    model, kwargs = build_model(name, cfg.input_size, cfg.width)
+    train_tf = TrainTransform(cfg.input_size) if cfg.augment else EvalTransform(cfg.input_size)
+    train_set = ShardedDataset(ctx.data, "train", FIELDS, transform=ImageLabel(train_tf), method="stability")
+    val_set = ShardedDataset(ctx.data, "val", FIELDS, transform=ImageLabel(EvalTransform(cfg.input_size)), method="stability")
+    labels = train_set.column("label")
+    ctx.log(f"training {name} on {len(train_set)} images ({labels.mean():.0%} unstable), validating on {len(val_set)}")
+
+    def loss_fn(net, batch):
+        return logistic_loss(logits_of(net, batch["image"]), batch["label"])  # Eq. 3.2
+
+    make_optimizer = None
+    if cfg.optimizer == "rmsprop":  # the Inception-v4 paper's solver (thesis: "hyper-parameters as in [192]")
+        def make_optimizer(net):
+            return rmsprop_for(net, paper=True, lr=cfg.lr, weight_decay=cfg.weight_decay)
+    elif cfg.optimizer != "adam":
+        raise BadInput(f"train.optimizer must be adam or rmsprop, got {cfg.optimizer!r}")
+    result = fit(model, train_set, val_set, run=Run(ctx.run), epochs=cfg.epochs, batch_size=cfg.batch_size,
+                 lr=cfg.lr, weight_decay=cfg.weight_decay, loss_fn=loss_fn, metric_fn=accuracy, device=ctx.device,
+                 seed=ctx.seed, resume=bool(ctx.options.get("resume")), log=ctx.log, higher_is_better=True,
+                 num_workers=cfg.num_workers, make_optimizer=make_optimizer,
+                 meta={"method": "stability", "model": name, "kwargs": kwargs, "scene": ctx.scene})
+    _plot_curves(Run(ctx.run), result.history)
+    return {"model": name, "epochs": result.epochs, "val_accuracy": result.best_metric,
+            "train_images": len(train_set), "val_images": len(val_set), "scene": ctx.scene}
+
+
+def load_predictor(run_dir, device: str = "cpu"):
+    """The best checkpoint of a trained stability run, in eval mode, with its input size."""
+    from physint_cli.plugins import get_plugins
+    from physint_cli.runs import Run
+    from physint_cli.training import load_checkpoint
+
+    state = load_checkpoint(Run(run_dir).checkpoint("best"), device)
+    meta = state.get("meta", {})
+    models = get_plugins().models_for("stability")
+    if meta.get("method") != "stability" or meta.get("model") not in models:
+        raise BadInput(f"checkpoint in {run_dir} is not a stability predictor (model {meta.get('model')!r})")
+    model = models[meta["model"]].build(**meta["kwargs"])
+    model.load_state_dict(state["model"])
+    return model.to(device).eval(), int(meta["kwargs"]["in_size"])
+
+
+def _plot_curves(run, history) -> None:
+    from physint_cli.artifacts import save_plot
+
+    def draw(ax):
+        epochs = [h["epoch"] for h in history]
+        ax.plot(epochs, [h["train_loss"] for h in history], label="train logistic loss (Eq. 3.2)")
+        ax.plot(epochs, [h["val_metric"] for h in history], label="val accuracy")
+        ax.axhline(0.5, color="grey", ls=":", lw=1, label="chance")
+        ax.set_xlabel("epoch")
+        ax.legend()
+
+    save_plot(run.artifact("training_curves.png"), draw)
