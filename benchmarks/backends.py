@@ -15,7 +15,7 @@ of ``physint_backends``:
    one 64x64 camera): ``sim.robot.act([dx, dy, dz, g])`` plus one 64x64 render; and without the
    render;
 5. renders/s of that Panda scene with the robot's detailed visual meshes (``robot_visual``
-   ``"full"``, or ``"mesh"`` on PyBullet) beside the default low-poly drawing.
+   ``"full"``) beside the default low-poly drawing.
 
 The raw references are measured in the same run, interleaved with each backend figure (rounds of
 backend / reference; each figure is the best round, which discards slow-downs caused by other
@@ -77,7 +77,7 @@ RENDER_GOAL_RATIO = 0.5  # stack-scene rendering within 2x of raw MuJoCo
 CONTROL_GOAL = 100.0  # control steps/s with a 64x64 camera, on the MuJoCo and robosuite backends
 SCENES_GOAL = 2000.0  # "thousands of small scenes per minute"
 CONTROL_GOAL_BACKENDS = ("mujoco", "robosuite")
-DETAILED_ROBOT = {"mujoco": "full", "pybullet": "mesh", "robosuite": "full"}  # robot_visual option values
+DETAILED_ROBOT = {"mujoco": "full", "pybullet": "full", "robosuite": "full"}  # robot_visual option values
 
 
 def log(msg: str) -> None:

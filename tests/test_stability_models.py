@@ -2,15 +2,12 @@
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "plugins"))
-from stability import augment, model  # noqa: E402
+from physint_plugins.stability import augment, model
 
 
 @pytest.fixture(autouse=True, scope="module")

@@ -5,21 +5,16 @@ from __future__ import annotations
 
 import json
 import math
-import sys
 from collections import Counter
-from pathlib import Path
 
 import numpy as np
 import pytest
 
-ROOT = Path(__file__).resolve().parent.parent
-sys.path.insert(0, str(ROOT / "plugins"))
-
-import physint_backends as pb  # noqa: E402
-from physint_backends.randomize import PALETTE  # noqa: E402
-from physint_cli.errors import BadInput  # noqa: E402
-from stability import physics, scenes  # noqa: E402
-from stability.physics import StackObject, analyse  # noqa: E402
+import physint_backends as pb
+from physint_backends.randomize import PALETTE
+from physint_cli.errors import BadInput
+from physint_plugins.stability import physics, scenes
+from physint_plugins.stability.physics import StackObject, analyse
 
 CUBE = 0.06
 
