@@ -39,7 +39,7 @@ def register_models(register):
     from . import model
 
     register(ModelInfo("cnn", method="stability", build=model.compact_cnn,
-                       description="compact CNN, the CPU default (0.28M parameters)"))
+                       description="compact CNN, the CPU default (0.69M parameters)"))
     register(ModelInfo("alexnet", method="stability", build=model.alexnet,
                        description="AlexNet (Krizhevsky et al. 2012), the thesis's baseline"))
     register(ModelInfo("inception-v4", method="stability", build=model.inception_v4,

@@ -1,0 +1,63 @@
+"""The stability method through the CLI: dataset, train, eval, deploy with the tiny preset."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import call
+
+from physint_cli.datasets import ShardedDataset
+
+
+@pytest.fixture(scope="module")
+def tiny_dataset(tmp_path_factory):
+    out = tmp_path_factory.mktemp("stability") / "ds"
+    code, stdout, err = call("dataset", "stability", "--preset", "tiny", "--scene", "all", "--out", str(out), "--json")
+    assert code == 0, err
+    return out, json.loads(stdout)
+
+
+def test_dataset_is_balanced_labelled_and_agrees_with_simulation(tiny_dataset):
+    out, result = tiny_dataset
+    stats = result["stats"]
+    assert stats["scenarios"] == 48 and stats["agreement_rate"] >= 0.9
+    assert stats["kept_stable"] + stats["kept_VCOM"] + stats["kept_VPSF"] == 48
+    assert abs(stats["kept_stable"] - 24) <= 2  # equal stable and unstable (per height, Table 3.1)
+    assert stats["scenarios_per_cpu_second"] > 0
+    ds = ShardedDataset(out, "train")
+    labels, violations = ds.column("label"), ds.column("violation")
+    assert set(labels.tolist()) == {0, 1}
+    assert ((violations > 0) == (labels == 1)).all()  # unstable <=> a VCOM (1) or VPSF (2) violation
+    for i in range(0, len(ds), 7):
+        r = ds[i]
+        seg, h = r["segmentation"], int(r["height"])
+        assert r["image"].shape == (32, 32, 3) and seg.shape == (32, 32)
+        assert set(np.unique(seg).tolist()) <= set(range(-1, h))  # background or one of the h objects
+        if r["label"] == 1:
+            assert 0 <= r["violating"] < h and 0 <= r["first_to_fall"] < h
+        else:
+            assert r["violating"] == -1 and r["first_to_fall"] == -1
+
+
+def test_train_eval_deploy_tiny(tiny_dataset, tmp_path):
+    out, _ = tiny_dataset
+    code, stdout, err = call("train", "stability", "--preset", "tiny", "--scene", "all", "--data", str(out),
+                             "--out", str(tmp_path / "run"), "--json")
+    assert code == 0, err
+    code, stdout, err = call("eval", "stability", "--run", str(tmp_path / "run"), "--json")
+    assert code == 0, err
+    metrics = json.loads(stdout)["metrics"]
+    assert metrics["images"] > 0 and 0 <= metrics["accuracy"] <= 1
+    assert set(metrics["by_violation"]) == {"stable", "VCOM", "VPSF"}
+    table = metrics["localisation"]
+    chance = table["random_in_image"]
+    assert chance["background"] > chance["violating_object"] > 0  # the tower is a small part of the image
+    assert chance["violation_area"] >= chance["violating_object"]
+    assert table["images"] == 4
+    run = Path(json.loads(stdout)["run"])
+    assert (run / "artifacts" / "accuracy.png").exists() and (run / "artifacts" / "occlusion_example.png").exists()
+    code, stdout, err = call("train", "stability", "--preset", "tiny", "--data", str(out), "--model", "nope")
+    assert code == 2 and "unknown model" in err
