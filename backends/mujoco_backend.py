@@ -241,13 +241,30 @@ def build_spec(scene: Scene, *, robot_visual: str = "collision") -> BuiltScene:
 # ------------------------------------------------------------------------------------------------
 # rendering
 # ------------------------------------------------------------------------------------------------
+_SHARED_GL: list = []  # [(GLContext, width, height)]: one OpenGL context per process, reused by every model
+
+
+def _shared_gl(width: int, height: int):
+    """The process's OpenGL context, (re)made when a model needs a bigger offscreen buffer.
+
+    A new context costs Mesa's software rasteriser ~60-120 ms on its first frame (it compiles its
+    pipeline per context); sharing one across simulations makes building and rendering many
+    small scenes cheap. Older contexts are kept alive for the render contexts still using them.
+    """
+    if not _SHARED_GL or _SHARED_GL[-1][1] < width or _SHARED_GL[-1][2] < height:
+        w = max(width, _SHARED_GL[-1][1] if _SHARED_GL else 0)
+        h = max(height, _SHARED_GL[-1][2] if _SHARED_GL else 0)
+        _SHARED_GL.append((mujoco.GLContext(w, h), w, h))
+    return _SHARED_GL[-1][0]
+
+
 class _GLResources:
-    """The OpenGL context and MuJoCo render context of one model; freed once, even at exit."""
+    """The MuJoCo render context of one model on the shared OpenGL context; freed once, even at exit."""
 
     def __init__(self, model: mujoco.MjModel):
-        self.gl = mujoco.GLContext(model.vis.global_.offwidth, model.vis.global_.offheight)
+        self.gl = _shared_gl(model.vis.global_.offwidth, model.vis.global_.offheight)
         self.gl.make_current()
-        self.con = mujoco.MjrContext(model, mujoco.mjtFontScale.mjFONTSCALE_150.value)
+        self.con = mujoco.MjrContext(model, mujoco.mjtFontScale.mjFONTSCALE_50.value)
         mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN.value, self.con)
         self.con.readDepthMap = mujoco.mjtDepthMap.mjDEPTH_ZEROFAR
 
@@ -256,8 +273,6 @@ class _GLResources:
             if self.con is not None:
                 self.gl.make_current()
                 self.con.free()
-            if self.gl is not None:
-                self.gl.free()
         except Exception:  # at interpreter exit EGL may already be torn down: nothing left to free
             pass
         self.con = None

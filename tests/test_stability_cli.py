@@ -47,9 +47,11 @@ def test_train_eval_deploy_tiny(tiny_dataset, tmp_path):
     code, stdout, err = call("train", "stability", "--preset", "tiny", "--scene", "all", "--data", str(out),
                              "--out", str(tmp_path / "run"), "--json")
     assert code == 0, err
-    code, stdout, err = call("eval", "stability", "--run", str(tmp_path / "run"), "--json")
+    code, stdout, err = call("eval", "stability", "--run", str(tmp_path / "run"), "--set", "eval.cross_backend=pybullet",
+                             "--json")
     assert code == 0, err
     metrics = json.loads(stdout)["metrics"]
+    assert metrics["cross_backend"]["pybullet"]["images"] > 0  # trained on MuJoCo renders, tested on PyBullet's
     assert metrics["images"] > 0 and 0 <= metrics["accuracy"] <= 1
     assert set(metrics["by_violation"]) == {"stable", "VCOM", "VPSF"}
     table = metrics["localisation"]

@@ -145,15 +145,18 @@ def test_predictor_scorer_averages_the_network_over_its_cameras():
     with scorer:
         score = scorer.placement(trunk, top)
         s = score(np.array([0.01, 0.0]))
-        images = scorer.images(scorer._sim)
+        images = scorer.images()
         assert images.shape == (6, 32, 32, 3)
         with torch.no_grad():
             expected = 1 - torch.sigmoid(net(EvalTransform(32)(images))).mean().item()
         assert s == pytest.approx(expected, abs=1e-5)
-        colours = [b.geoms[0].rgba for b in scorer._sim.scene.bodies]
-        scorer.placement(trunk, top)  # a new placement, same episode: same look
-        assert [b.geoms[0].rgba for b in scorer._sim.scene.bodies] == colours
-        assert colours[0] != colours[1]
+        assert score(np.array([-0.02, 0.01])) != s  # only the geometry changed ...
+        other = scorer.placement(trunk, StackObject("sphere", (0.03,)))
+        other(np.zeros(2))
+        assert scorer.placement(trunk, top)(np.array([0.01, 0.0])) == s  # ... and the look stays the same
+        np.testing.assert_array_equal(scorer.images(), images)
+    c = appearance.colours([trunk[0], top, top])
+    assert c[0] != c[1] and c[1] != c[2]  # never the colour of the object below
 
 
 def test_deploy_rejects_an_unknown_task():

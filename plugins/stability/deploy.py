@@ -8,12 +8,16 @@
     three, one per pair of faces; a cylinder two, upright and lying; a sphere one). Every other
     object, in each of its orientations, is placed on top at the position simulated annealing finds
     most stable. The base's *stackability* is the mean, over the others, of their best score. The
-    base position and yaw are perturbed at random for every other object (robustness).
+    base position and yaw are perturbed at random for every other object (robustness). The
+    predictor scores a combination from ``STACKABILITY_VIEWS`` (2) opposite cameras (the thesis
+    assesses "an image" of it), which keeps this O(n^2 x orientations^2 x steps) task affordable.
 
 ``stack`` (Section 3.5.2, Figs. 3.7 and 3.8)
     Scenarios ``cubes``, ``cuboids`` and ``ccs`` (a CCS pool holds exactly two spheres). Each
     episode randomises texture, colours, lights and cameras, draws a pool of ``deploy.pool`` (12)
-    objects, orders them and picks their orientation by stackability, puts the first one at the
+    objects, orders them and picks their orientation by stackability (a quick estimate: each base
+    tried with ``QUICK_OTHERS`` random (object, orientation) pairs, ``anneal_steps / 6`` annealing
+    steps, ``STACKABILITY_VIEWS`` cameras), puts the first one at the
     scene centre, and spawns each next one ``SPAWN_GAP`` above the trunk at the (x, y) where
     simulated annealing finds the highest predicted stability within ``deploy.anneal_radius`` of
     the trunk's top centre. An object whose best score is below 0.5 is put aside for good. After
@@ -73,7 +77,8 @@ __all__ = [
     "TASKS", "AGENTS", "STACK_SCENARIOS", "COUNTERWEIGHTS", "Appearance", "Disc", "Rect", "AnnealResult", "anneal",
     "Scorer", "OracleScorer", "PredictorScorer", "lemma1_margin", "oracle_score", "orientations", "projected_area",
     "object_class", "stackability_pool", "base_stackability", "stackability_ranking", "stack_pool", "stack_episode",
-    "unstable_t", "counterweight", "balance_episode", "stackability_unit", "deploy",
+    "unstable_t", "counterweight", "balance_episode", "stackability_unit", "make_scorer", "run_stackability",
+    "run_stacking", "run_balance", "deploy",
 ]
 
 TASKS = ("stackability", "stack", "balance")
@@ -91,9 +96,10 @@ MOVE_THRESHOLD = 0.01  # m: an object moved further than this has fallen
 TILT_THRESHOLD = 10.0  # degrees: an object tipped further than this has fallen
 CHECK_EVERY = 0.01  # s between fall checks
 BASE_JITTER = 0.01  # m: random perturbation of the base position in the stackability score
-QUICK_OTHERS = 4  # stacking orders its pool with this many other objects per candidate base ...
-QUICK_STEPS_DIVISOR = 5  # ... and anneal_steps / this annealing steps per placement (min. 4)
-PARK = 40.0  # m: pool objects wait on the ground this far away (beyond the cameras' far plane)
+STACKABILITY_VIEWS = 2  # cameras whose images score a stackability combination (the thesis: one image)
+QUICK_OTHERS = 3  # stacking orders its pool with this many (other object, orientation) pairs per base ...
+QUICK_STEPS_DIVISOR = 6  # ... and anneal_steps / this annealing steps per placement (min. 4)
+PARK = 100.0  # m: pool objects wait on the ground this far away (beyond every backend's far plane: <= 50 m)
 VIDEO_SIZE = 160  # px
 VIDEO_FPS = 25.0
 _STRIP_SIZE = 96  # px per object in the Fig. 3.5 strip
@@ -379,29 +385,132 @@ def _torch_threads(n: int):
             torch.set_num_threads(saved)
 
 
+class _Stage:
+    """One simulation holding a body for every object an episode may show, used only to render.
+
+    A stack is shown by moving its objects into place (any orientation: a body's pose carries it),
+    recolouring them, parking every other body beyond the cameras' far plane and moving the camera
+    ring to fit the stack; nothing is rebuilt and no physics runs. (A new MuJoCo simulation pays
+    ~0.2 s for its GL context on the first render, 30-50x a whole 6-camera evaluation.) An object
+    the stage has no body for (matched by shape and size) triggers one rebuild with it added.
+    """
+
+    def __init__(self, appearance: Appearance, make_sim: Callable[[Scene], Any], objects=(),
+                 cameras: int | None = None, size: int | None = None, prefix: str = "cam"):
+        self.appearance = appearance
+        self.make_sim = make_sim
+        self.n_cameras = appearance.cameras if cameras is None else cameras
+        self.size = size or appearance.resolution
+        self.prefix = prefix
+        self.objects: list[StackObject] = list(objects)
+        self.sim = None
+        self.names: dict[tuple, list[str]] = {}
+        self.camera_names: list[str] = []
+        self._rgba: dict[str, tuple] = {}
+        self._where: dict[str, bool | None] = {}
+
+    def _parked(self, j: int, obj: StackObject) -> tuple[float, float, float]:
+        return (PARK + 0.3 * j, PARK, obj.height / 2)
+
+    def _build(self) -> None:
+        self.close()
+        parked = []
+        self.names = {}
+        for j, obj in enumerate(self.objects):
+            x, y, z = self._parked(j, obj)
+            parked.append(obj.moved(x=x, y=y, z=z))
+            self.names.setdefault(tuple(_object_key(obj)), []).append(f"obj{j}")
+        cams = self.appearance.ring([stack_up([self.objects[0].moved(x=0.0, y=0.0)])[0]], n=self.n_cameras,
+                                    size=self.size, prefix=self.prefix)
+        self.sim = self.make_sim(self.appearance.scene(parked, cameras=cams))
+        self.camera_names = [c.name for c in cams]
+        self._rgba = {}
+        self._where = {f"obj{j}": None for j in range(len(self.objects))}
+
+    def _bodies(self, stack: list[StackObject]) -> list[str]:
+        """Body names for the stack's objects (adding missing ones, with a rebuild)."""
+        counts: dict[tuple, int] = {}
+        missing = []
+        for obj in stack:
+            key = tuple(_object_key(obj))
+            counts[key] = counts.get(key, 0) + 1
+            if counts[key] > len(self.names.get(key, [])):
+                missing.append(obj)
+        if missing or self.sim is None:
+            self.objects += missing
+            self._build()
+        used: dict[tuple, int] = {}
+        out = []
+        for obj in stack:
+            key = tuple(_object_key(obj))
+            out.append(self.names[key][used.get(key, 0)])
+            used[key] = used.get(key, 0) + 1
+        return out
+
+    def show(self, stack: list[StackObject], factor: float = 1.0) -> list[str]:
+        """Put ``stack`` (heights set) in place, park the rest, fit the cameras; its body names."""
+        names = self._bodies(stack)
+        sim = self.sim
+        shown = set(names)
+        for j, obj in enumerate(self.objects):
+            name = f"obj{j}"
+            if name not in shown and self._where[name] is not None:
+                sim.set_pose(name, self._parked(j, obj))
+                self._where[name] = None
+        for name, obj, rgba in zip(names, stack, self.appearance.colours(stack)):
+            sim.set_pose(name, (obj.x, obj.y, obj.z), obj.quat)
+            self._where[name] = True
+            if self._rgba.get(name) != rgba:
+                sim.set_rgba(name, rgba)
+                self._rgba[name] = rgba
+        _move_cameras(sim, self.appearance.ring(stack, n=self.n_cameras, size=self.size, factor=factor,
+                                                prefix=self.prefix))
+        return names
+
+    def render(self, views: int | None = None) -> np.ndarray:
+        """Every camera's image, or ``views`` of them evenly spaced around the ring."""
+        names = self.camera_names
+        if views is not None and 0 < views < len(names):
+            names = [names[round(k * len(names) / views)] for k in range(views)]
+        return np.stack([self.sim.render(c, rgb=True).rgb for c in names])
+
+    def close(self) -> None:
+        if self.sim is not None:
+            self.sim.close()
+            self.sim = None
+
+
 class PredictorScorer(Scorer):
     """The learned predictor: render the candidate from the episode's cameras, stability = 1 - mean P(unstable).
 
-    ``placement`` builds one simulation of the trunk with the object resting on its top centre
-    (:meth:`Appearance.scene`, cameras fitted to that stack and kept while the object moves) and
-    returns ``score(xy)``, which moves the object (``set_pose``, no physics), renders every camera
-    and runs the network once on the batch. The simulation is reused until the next ``placement``.
+    ``placement`` shows the trunk with the object resting on its top centre on a :class:`_Stage`
+    (cameras fitted to that stack and kept while the object moves) and returns ``score(xy)``,
+    which moves the object (``set_pose``, no physics), renders every camera and runs the network
+    once on the batch. ``objects``: the episode's objects, so that the stage is built once.
     """
 
     name = "predictor"
 
     def __init__(self, model, input_size: int, appearance: Appearance, make_sim: Callable[[Scene], Any],
-                 threads: int = 1):
+                 objects=(), threads: int = 1):
         self.model = model
         self.input_size = int(input_size)
         self.appearance = appearance
-        self.make_sim = make_sim
+        self.stage = _Stage(appearance, make_sim, objects)
         self.threads = threads
-        self._sim = None
         self.evaluations = 0
+        self.views: int | None = None  # None: every camera; k: k of them (stackability)
 
-    def images(self, sim) -> np.ndarray:
-        return np.stack([sim.render(c, rgb=True).rgb for c in sim.camera_names])
+    def images(self) -> np.ndarray:
+        return self.stage.render(self.views)
+
+    @contextlib.contextmanager
+    def using_views(self, views: int | None):
+        saved, self.views = self.views, views
+        try:
+            yield self
+        finally:
+            self.views = saved
 
     def stability(self, images: np.ndarray) -> float:
         from .evaluate import predict
@@ -412,22 +521,18 @@ class PredictorScorer(Scorer):
         return float(1.0 - np.mean(p_unstable))
 
     def placement(self, trunk, obj):
-        self.close()
         placed = _on_top(list(trunk), obj)
-        scene = self.appearance.scene(list(trunk) + [placed])
-        sim = self._sim = self.make_sim(scene)
-        name, z, quat = f"obj{len(trunk)}", placed.z, placed.quat
+        name = self.stage.show(list(trunk) + [placed])[-1]
+        sim, z, quat = self.stage.sim, placed.z, placed.quat
 
         def score(xy) -> float:
             sim.set_pose(name, (float(xy[0]), float(xy[1]), z), quat)
-            return self.stability(self.images(sim))
+            return self.stability(self.images())
 
         return score
 
     def close(self) -> None:
-        if self._sim is not None:
-            self._sim.close()
-            self._sim = None
+        self.stage.close()
 
 
 _PREDICTORS: dict[tuple[str, str], tuple[Any, int]] = {}
@@ -445,11 +550,12 @@ def _load_predictor(ctx: Context) -> tuple[Any, int]:
     return _PREDICTORS[key]
 
 
-def make_scorer(ctx: Context, agent: str, appearance: Appearance) -> Scorer | None:
-    """The scorer an agent searches with (None for ``random`` / ``none``, which do not search)."""
+def make_scorer(ctx: Context, agent: str, appearance: Appearance, objects=()) -> Scorer | None:
+    """The scorer an agent searches with (None for ``random`` / ``none``, which do not search);
+    ``objects``: what the episode will show (the predictor's stage is built with them)."""
     if agent == "predictor":
         model, size = _load_predictor(ctx)
-        return PredictorScorer(model, size, appearance, ctx.make_sim)
+        return PredictorScorer(model, size, appearance, ctx.make_sim, objects)
     if agent == "oracle":
         return OracleScorer()
     return None
@@ -526,19 +632,21 @@ def stackability_pool(n: int, rng: np.random.Generator) -> list[StackObject]:
 
 
 def base_stackability(base: StackObject, others: list[StackObject], scorer: Scorer, rng: np.random.Generator,
-                      steps: int, radius: float, jitter: float = BASE_JITTER) -> tuple[float, list[float]]:
+                      steps: int, radius: float, jitter: float = BASE_JITTER,
+                      every_orientation: bool = True) -> tuple[float, list[float]]:
     """Section 3.5.1: the mean over ``others`` of the best score of each on top of ``base``.
 
     For each other object the base is perturbed at random (position within ``jitter``, yaw), the
-    object is tried in each of its orientations, each placed by :func:`anneal` within ``radius``
-    of the base's top centre; its best score over orientations and positions is recorded.
+    object is tried in each of its orientations (or only as given, ``every_orientation=False``),
+    each placed by :func:`anneal` within ``radius`` of the base's top centre; its best score over
+    orientations and positions is recorded.
     """
     per_other = []
     for other in others:
         b = stack_up([base.moved(x=float(rng.uniform(-jitter, jitter)), y=float(rng.uniform(-jitter, jitter)),
                                  yaw=float(rng.uniform(0, math.pi)))])
         best = 0.0
-        for o in orientations(other):
+        for o in (orientations(other) if every_orientation else [other]):
             res = anneal(scorer.placement(b, o), Disc(b[0].xy, radius), steps, rng)
             best = max(best, res.score)
         per_other.append(best)
@@ -549,16 +657,21 @@ def stackability_ranking(objects: list[StackObject], scorer: Scorer, rng: np.ran
                          radius: float, others: int | None = None) -> list[dict[str, Any]]:
     """Every (object, orientation) as a base, scored by :func:`base_stackability`, best first.
 
-    ``others`` limits the objects tried on each base to a random subset of that size (stacking uses
-    a quick ranking). Ties keep the larger projected area first.
+    With ``others`` = k (stacking's quick ranking) each base is tried with k random (other object,
+    orientation) pairs instead of every other object in every orientation. Ties keep the larger
+    projected area first.
     """
     rows = []
     for i, obj in enumerate(objects):
         rest = [o for j, o in enumerate(objects) if j != i]
-        if others is not None and len(rest) > others:
-            rest = [rest[k] for k in sorted(rng.choice(len(rest), others, replace=False))]
         for oriented in orientations(obj):
-            score, per_other = base_stackability(oriented, rest, scorer, rng, steps, radius)
+            if others is None:
+                score, per_other = base_stackability(oriented, rest, scorer, rng, steps, radius)
+            else:
+                pairs = [o for r in rest for o in orientations(r)]
+                pick = [pairs[k] for k in sorted(rng.choice(len(pairs), min(others, len(pairs)), replace=False))]
+                score, per_other = base_stackability(oriented, pick, scorer, rng, steps, radius,
+                                                     every_orientation=False)
             rows.append(_ranking_row(i, oriented, score, per_other))
     rows.sort(key=lambda r: (-r["score"], -r["projected_area"]))
     return rows
@@ -581,7 +694,9 @@ def stackability_unit(ctx: Context, unit: Unit) -> dict[str, Any]:
     others = [o for j, o in enumerate(pool) if j != p["object"]]
     rng = np.random.default_rng(unit.seed)  # the same perturbations and SA draws for every agent
     t0 = time.perf_counter()
-    scorer = make_scorer(ctx, p["agent"], appearance)
+    scorer = make_scorer(ctx, p["agent"], appearance, pool)
+    if isinstance(scorer, PredictorScorer):
+        scorer.views = STACKABILITY_VIEWS
     try:
         score, per_other = base_stackability(base, others, scorer, rng, cfg.anneal_steps, cfg.anneal_radius)
     finally:
@@ -800,10 +915,11 @@ def stack_episode(ctx: Context, unit: Unit) -> dict[str, Any]:
     appearance = Appearance.draw(rng, cfg.cameras, ctx.config.data.resolution, ctx.config.data.textures,
                                  timestep=ctx.config.data.timestep)
     arng = np.random.default_rng([unit.seed, AGENTS.index(agent)])
-    scorer = make_scorer(ctx, agent, appearance)
-    try:
-        with (scorer or OracleScorer()) as orderer:  # random placement: in the oracle's order
-            queue = _stack_order(pool, orderer, arng, _quick_steps(cfg), cfg.anneal_radius)
+    scorer = make_scorer(ctx, agent, appearance, pool)
+    try:  # random placement: in the oracle's order
+        with (scorer.using_views(STACKABILITY_VIEWS) if isinstance(scorer, PredictorScorer)
+              else contextlib.nullcontext()):
+            queue = _stack_order(pool, scorer or OracleScorer(), arng, _quick_steps(cfg), cfg.anneal_radius)
         rec = _Recorder(_artifact(ctx, f"stack_{scenario}_{agent}") if p.get("record") else None,
                         f"stack-{scenario}-{agent}")
         out = _stack_live(ctx, queue, appearance, agent, scorer, arng, rec)
@@ -957,7 +1073,7 @@ def unstable_t(rng: np.random.Generator, weight: StackObject, min_band: float = 
         weight = weight.moved(yaw=yaw)  # aligned with the plank (see stack_pool)
         if analyse(t).violation != "VCOM":
             continue
-        s = np.linspace(-plank_size[0] / 2, plank_size[0] / 2, 61)
+        s = np.linspace(-plank_size[0] / 2, plank_size[0] / 2, 41)
         ok = [lemma1_margin(t + [weight.moved(x=float(c[0] + k * u[0]), y=float(c[1] + k * u[1]))]) >= safe for k in s]
         if np.sum(ok) * (s[1] - s[0]) >= min_band:
             return t
@@ -986,7 +1102,7 @@ def balance_episode(ctx: Context, unit: Unit) -> dict[str, Any]:
     arng = np.random.default_rng([unit.seed, AGENTS.index(agent)])
     plank = t[1]
     score = None
-    scorer = make_scorer(ctx, agent, appearance)
+    scorer = make_scorer(ctx, agent, appearance, t + [weight])
     try:
         if agent == "none":
             objects = list(t)
@@ -1130,12 +1246,10 @@ def _balance_figure(ctx: Context, out: dict[str, Any], agents: list[str]) -> str
     return path.name
 
 
-def _portrait(ctx: Context, obj: StackObject, appearance: Appearance) -> np.ndarray:
+def _portrait(stage: _Stage, obj: StackObject) -> np.ndarray:
     """One object alone on the ground, seen from the front."""
-    obj = stack_up([obj.moved(x=0.0, y=0.0)])
-    cams = appearance.ring(obj, n=1, size=_STRIP_SIZE, factor=1.25, prefix="portrait")
-    with ctx.make_sim(appearance.scene(obj, cameras=cams)) as sim:
-        return sim.render("portrait0", rgb=True).rgb
+    stage.show(stack_up([obj.moved(x=0.0, y=0.0)]), factor=1.25)
+    return stage.render()[0]
 
 
 def _stackability_figures(ctx: Context, pool: list[StackObject], agents_out: dict[str, Any], main: str,
@@ -1164,8 +1278,12 @@ def _stackability_figures(ctx: Context, pool: list[StackObject], agents_out: dic
                                  textures=ctx.config.data.textures)
     appearance = dataclasses.replace(appearance, elevation=25.0, azimuth=-math.pi / 2 + 0.4)
     order = agents_out[main]["object_order"]
-    top = [_portrait(ctx, o, appearance) for o in pool]
-    bottom = [_portrait(ctx, pool[r["object"]].moved(orientation=r["orientation"]), appearance) for r in order]
+    stage = _Stage(appearance, ctx.make_sim, pool, cameras=1, size=_STRIP_SIZE, prefix="portrait")
+    try:
+        top = [_portrait(stage, o) for o in pool]
+        bottom = [_portrait(stage, pool[r["object"]].moved(orientation=r["orientation"])) for r in order]
+    finally:
+        stage.close()
     strip = np.concatenate([np.concatenate(top, axis=1), np.concatenate(bottom, axis=1)], axis=0)
 
     def draw_strip(ax):  # Fig. 3.5

@@ -7,6 +7,7 @@ logistic loss of Eq. 3.2, with physically plausible augmentation (towers stay up
 from __future__ import annotations
 
 import inspect
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -106,7 +107,7 @@ def load_predictor(run_dir, device: str = "cpu"):
     from physint_cli.runs import Run
     from physint_cli.training import load_checkpoint
 
-    state = load_checkpoint(Run(run_dir).checkpoint("best"), device)
+    state = load_checkpoint(Run(Path(run_dir)).checkpoint("best"), device)
     meta = state.get("meta", {})
     models = get_plugins().models_for("stability")
     if meta.get("method") != "stability" or meta.get("model") not in models:
