@@ -61,5 +61,11 @@ def test_train_eval_deploy_tiny(tiny_dataset, tmp_path):
     assert table["images"] == 4
     run = Path(json.loads(stdout)["run"])
     assert (run / "artifacts" / "accuracy.png").exists() and (run / "artifacts" / "occlusion_example.png").exists()
+    code, stdout, err = call("deploy", "stability", "--run", str(tmp_path / "run"), "--task", "balance", "--json")
+    assert code == 0, err
+    deployed = json.loads(stdout)
+    assert (Path(deployed["run"]) / "artifacts" / "balance_success.png").exists()
+    code, stdout, err = call("deploy", "stability", "--run", str(tmp_path / "run"), "--task", "juggle")
+    assert code == 2 and "stackability" in err
     code, stdout, err = call("train", "stability", "--preset", "tiny", "--data", str(out), "--model", "nope")
     assert code == 2 and "unknown model" in err
