@@ -12,9 +12,10 @@ import os
 import signal
 import sys
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
 from typing import Any, Callable
 
-from .errors import BadInput
+from .errors import BadInput, RunFailure
 
 
 def progress_bar(quiet: bool = False):
@@ -71,11 +72,16 @@ def map_units(fn: Callable[[Any, Any], Any], ctx: Any, units: list[Any], descrip
             while pending:
                 done, _ = wait(pending, return_when=FIRST_COMPLETED)
                 for fut in done:
-                    results[pending.pop(fut)] = fut.result()
+                    try:
+                        results[pending.pop(fut)] = fut.result()
+                    except BrokenProcessPool:
+                        raise RunFailure("a worker process died (killed, out of memory, or a simulator crash); "
+                                         "finished units are kept: rerun the same command to resume") from None
                     progress.advance(task)
         except BaseException:
+            processes = list((getattr(pool, "_processes", None) or {}).values())  # before shutdown clears them
             pool.shutdown(wait=False, cancel_futures=True)
-            for proc in list(getattr(pool, "_processes", {}).values()):
+            for proc in processes:
                 proc.terminate()
             raise
         pool.shutdown(wait=True)

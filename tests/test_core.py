@@ -258,3 +258,13 @@ def test_ctrl_c_during_training_keeps_the_last_checkpoint_and_resumes(toy_plugin
     assert code == 0, err
     assert "at epoch 2" in err and j(stdout)["metrics"]["epochs"] == 5
     assert [json.loads(line)["step"] for line in (out / "metrics.jsonl").read_text().splitlines()] == [1, 2, 3, 4, 5]
+
+
+def test_a_dying_worker_is_a_clear_failure_and_finished_shards_are_kept(toy_plugins, tmp_path):
+    out = tmp_path / "ds"
+    code, _, err = call("dataset", "toy", "--preset", "tiny", "--out", str(out), "--workers", "2",
+                        "--set", "data.die_on_shard=1", "--set", "data.slow=0.3")
+    assert code == 1 and "a worker process died" in err and "rerun the same command to resume" in err
+    assert "Traceback" not in err
+    code, _, err = call("dataset", "toy", "--preset", "tiny", "--out", str(out), "--workers", "2", "--set", "data.slow=0.3")
+    assert code == 2 and "already holds a different dataset" in err  # the config differs: not mixed in

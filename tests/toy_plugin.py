@@ -22,6 +22,7 @@ class Data:
     per_shard: int = field_(16, "samples per shard")
     image_size: int = field_(8, "image side")
     slow: float = field_(0.0, "seconds to sleep per shard (to test interruption)")
+    die_on_shard: int = field_(-1, "a worker process dies on this train shard (to test crashes)")
 
 
 @dataclass
@@ -63,6 +64,8 @@ class Toy(Method):
 
     def generate(self, ctx, unit):
         time.sleep(ctx.config.data.slow)
+        if unit.split == "train" and unit.index == ctx.config.data.die_on_shard:
+            os._exit(1)  # a simulator segfault, an OOM kill
         rng = np.random.default_rng(unit.seed)
         x = rng.uniform(-1, 1, unit.count).astype(np.float32)
         y = (2 * x + 1 + rng.normal(0, 0.01, unit.count)).astype(np.float32)
