@@ -45,6 +45,9 @@ def _check_reachable(address: str) -> None:
 def _worker_init() -> None:
     # the parent handles Ctrl-C and stops the pool; workers must not print tracebacks for it
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    # N worker processes are the parallelism: one math thread each, or they oversubscribe the cores
+    for var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+        os.environ.setdefault(var, "1")
 
 
 def _apply(fn, ctx, unit):
