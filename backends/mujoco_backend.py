@@ -674,10 +674,14 @@ class MujocoSimulation(Simulation):
         # everything built: replace the previous world
         if self.world is not None:
             self.world.close()
+        self._install(scene, world, robot, [model.camera(n).id for n in built.camera_names])
+
+    def _install(self, scene: Scene, world: MujocoWorld, robot, camera_ids: list[int]) -> None:
+        """Make a freshly built world (and robot) this simulation's, after the old one is closed."""
         Simulation.__init__(self, scene)
         self.world = world
         self.robot = robot
-        self._camera_ids = [model.camera(n).id for n in built.camera_names]
+        self._camera_ids = camera_ids
         self._cameras = {c.name: c for c in scene.cameras}  # current camera specs (set_camera edits)
 
     @property

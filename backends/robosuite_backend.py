@@ -46,7 +46,7 @@ from collections import OrderedDict
 import numpy as np
 
 from . import ensure_headless_gl
-from .base import RobotState, Simulation
+from .base import RobotState
 from .spec import GRIPPER_NOOP, GRIPPER_OPEN, Body, Geom, Scene, SpecError, Texture, validate_action
 
 ensure_headless_gl()  # before robosuite imports mujoco, which picks its OpenGL platform on import
@@ -521,10 +521,8 @@ class RobosuiteSimulation(MujocoSimulation):
             env.close()
             raise
         self.close()  # the previous world and environment
-        Simulation.__init__(self, scene)
-        self.env, self.world, self.robot = env, world, robot
-        self._camera_ids = [model.camera(SceneEnv.camera_name(i)).id for i in range(len(scene.cameras))]
-        self._cameras = {c.name: c for c in scene.cameras}  # current camera specs (set_camera edits)
+        self._install(scene, world, robot, [model.camera(SceneEnv.camera_name(i)).id for i in range(len(scene.cameras))])
+        self.env = env
 
     def close(self) -> None:
         super().close()

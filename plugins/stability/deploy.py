@@ -70,8 +70,8 @@ from physint_cli.errors import BadInput, unknown
 from physint_cli.method import Context, Unit, unit_seed
 
 from .physics import SHAPES, StackObject, analyse, stack_up
-from .scenes import (Scenario, _cube, _cuboid, _cylinder, _sphere, _tilt, default_textures, lighting_conditions,
-                     to_scene)
+from .scenes import (Scenario, default_textures, lighting_conditions, sample_cube, sample_cuboid, sample_cylinder,
+                     sample_sphere, tilt_degrees, to_scene)
 
 __all__ = [
     "TASKS", "AGENTS", "STACK_SCENARIOS", "COUNTERWEIGHTS", "Appearance", "Disc", "Rect", "AnnealResult", "anneal",
@@ -621,7 +621,7 @@ _POOL_CYCLE = ("cuboid", "cylinder", "sphere", "cube", "cuboid", "cylinder", "cu
 
 def stackability_pool(n: int, rng: np.random.Generator) -> list[StackObject]:
     """``n`` objects of every class (cuboids of varied aspect ratios, cubes, cylinders, spheres), random yaw."""
-    make = {"cuboid": _cuboid, "cube": _cube, "cylinder": _cylinder, "sphere": _sphere}
+    make = {"cuboid": sample_cuboid, "cube": sample_cube, "cylinder": sample_cylinder, "sphere": sample_sphere}
     out = []
     for i in range(n):
         obj = make[_POOL_CYCLE[i % len(_POOL_CYCLE)]](rng)
@@ -766,13 +766,13 @@ def run_stackability(ctx: Context, agents: list[str]) -> dict[str, Any]:
 def stack_pool(scenario: str, n: int, rng: np.random.Generator) -> list[StackObject]:
     """A pool of ``n`` objects: cubes, cuboids, or CCS (cuboids and cylinders, exactly two spheres)."""
     if scenario == "cubes":
-        objs = [_cube(rng) for _ in range(n)]
+        objs = [sample_cube(rng) for _ in range(n)]
     elif scenario == "cuboids":
-        objs = [_cuboid(rng) for _ in range(n)]
+        objs = [sample_cuboid(rng) for _ in range(n)]
     elif scenario == "ccs":
         spheres = min(2, n)
-        objs = [_sphere(rng) for _ in range(spheres)]
-        objs += [_cuboid(rng) if rng.random() < 0.5 else _cylinder(rng) for _ in range(n - spheres)]
+        objs = [sample_sphere(rng) for _ in range(spheres)]
+        objs += [sample_cuboid(rng) if rng.random() < 0.5 else sample_cylinder(rng) for _ in range(n - spheres)]
         objs = [objs[i] for i in rng.permutation(n)]
     else:
         raise unknown("stacking scenario", scenario, STACK_SCENARIOS)
@@ -823,7 +823,7 @@ def _watch(sim, names: list[str], objects: list[StackObject], start: list, secon
         if not fell:
             for name, obj, (p0, q0) in zip(names, objects, start):
                 pos, quat = sim.get_pose(name)
-                if np.linalg.norm(pos - p0) > MOVE_THRESHOLD or _tilt(obj, q0, quat) > TILT_THRESHOLD:
+                if np.linalg.norm(pos - p0) > MOVE_THRESHOLD or tilt_degrees(obj, q0, quat) > TILT_THRESHOLD:
                     fell = True
                     break
             if fell and stop_early:
@@ -997,19 +997,23 @@ def _histogram(heights: list[int], top: int) -> list[int]:
     return counts
 
 
+def episode_units(ctx: Context, task: str, key: str, variants, agents: list[str], episodes: int,
+                  **params: Any) -> list[Unit]:
+    """One work unit per (variant, agent, episode). Every agent meets the same episode seeds, so the
+    agents are compared on the same pools and appearances; the first agent's first episode of the
+    first variant is recorded."""
+    return [Unit(f"{task}-{variant}-{agent}", e, 1, unit_seed(ctx.seed, task, variant, e),
+                 {key: variant, "agent": agent, **params,
+                  "record": agent == agents[0] and e == 0 and variant == variants[0]})
+            for variant in variants for agent in agents for e in range(episodes)]
+
+
 def run_stacking(ctx: Context, agents: list[str], episodes: int) -> dict[str, Any]:
     cfg = ctx.config.deploy
     agents = [a for a in agents if a in ("predictor", "oracle", "random")]
     if not agents:
         raise BadInput("stacking needs an agent: predictor, oracle or random")
-    main = agents[0]
-    units = []
-    for scenario in STACK_SCENARIOS:
-        for agent in agents:
-            for e in range(episodes):
-                units.append(Unit(f"stack-{scenario}-{agent}", e, 1, unit_seed(ctx.seed, "stack", scenario, e),
-                                  {"scenario": scenario, "agent": agent, "pool": cfg.pool,
-                                   "record": agent == main and e == 0 and scenario == STACK_SCENARIOS[0]}))
+    units = episode_units(ctx, "stack", "scenario", STACK_SCENARIOS, agents, episodes, pool=cfg.pool)
     t0 = time.perf_counter()
     results = ctx.map(stack_episode, units, description="stacking")
     out: dict[str, Any] = {"task": "stack", "episodes": episodes, "pool": cfg.pool, "anneal_steps": cfg.anneal_steps,
@@ -1155,14 +1159,7 @@ def run_balance(ctx: Context, agents: list[str], episodes: int) -> dict[str, Any
     agents = [a for a in agents if a in AGENTS]
     if "none" not in agents:
         agents = agents + ["none"]
-    main = agents[0]
-    units = []
-    for kind in COUNTERWEIGHTS:
-        for agent in agents:
-            for e in range(episodes):
-                units.append(Unit(f"balance-{kind}-{agent}", e, 1, unit_seed(ctx.seed, "balance", kind, e),
-                                  {"weight": kind, "agent": agent,
-                                   "record": agent == main and e == 0 and kind == COUNTERWEIGHTS[0]}))
+    units = episode_units(ctx, "balance", "weight", COUNTERWEIGHTS, agents, episodes)
     t0 = time.perf_counter()
     results = ctx.map(balance_episode, units, description="counterbalancing")
     out: dict[str, Any] = {"task": "balance", "episodes": episodes, "anneal_steps": cfg.anneal_steps,

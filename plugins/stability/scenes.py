@@ -229,42 +229,42 @@ def plan_scenarios(n: int, rng: np.random.Generator, subset: str = "all") -> lis
 # objects
 # --------------------------------------------------------------------------------------------
 
-def _cube(rng) -> StackObject:
+def sample_cube(rng) -> StackObject:
     a = rng.uniform(*CUBE_EDGE)
     return StackObject("box", (a, a, a), "z")
 
 
-def _cuboid(rng) -> StackObject:
+def sample_cuboid(rng) -> StackObject:
     while True:
         size = rng.uniform(*CUBOID_EDGE, 3)
         if size.max() / size.min() <= CUBOID_MAX_ASPECT:
             return StackObject("box", tuple(size), ("z", "x", "y")[rng.integers(3)])
 
 
-def _cylinder(rng, lying: bool = False) -> StackObject:
+def sample_cylinder(rng, lying: bool = False) -> StackObject:
     return StackObject("cylinder", (rng.uniform(*CYLINDER_RADIUS), rng.uniform(*CYLINDER_HEIGHT)),
                        "lying" if lying else "upright")
 
 
-def _sphere(rng) -> StackObject:
+def sample_sphere(rng) -> StackObject:
     return StackObject("sphere", (rng.uniform(*SPHERE_RADIUS),))
 
 
 def _flat(rng, subset: str) -> StackObject:
     """An object with flat top and bottom: a cube (cubes), or a cuboid / upright cylinder (ccs)."""
     if subset == "cubes":
-        return _cube(rng)
-    return _cuboid(rng) if rng.random() < 0.6 else _cylinder(rng)
+        return sample_cube(rng)
+    return sample_cuboid(rng) if rng.random() < 0.6 else sample_cylinder(rng)
 
 
 def _curved(rng) -> StackObject:
-    return _sphere(rng) if rng.random() < 0.5 else _cylinder(rng, lying=True)
+    return sample_sphere(rng) if rng.random() < 0.5 else sample_cylinder(rng, lying=True)
 
 
 def _top(rng, subset: str, height: int) -> StackObject:
     """The top object: may also be curved in short ccs towers (nothing rests on it), see :data:`CURVED_TOP`."""
     if subset == "ccs" and height <= CURVED_TOP_MAX_HEIGHT and rng.random() < CURVED_TOP:
-        return _sphere(rng) if rng.random() < 0.8 else _cylinder(rng, lying=True)
+        return sample_sphere(rng) if rng.random() < 0.8 else sample_cylinder(rng, lying=True)
     return _flat(rng, subset)
 
 
@@ -582,7 +582,7 @@ def _rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
     return rot @ v
 
 
-def _tilt(obj: StackObject, q0: np.ndarray, q1: np.ndarray) -> float:
+def tilt_degrees(obj: StackObject, q0: np.ndarray, q1: np.ndarray) -> float:
     """Degrees the object has visibly tipped: how far its initially vertical axis turned (for a lying
     cylinder: how far its own axis turned; rolling about it and any turn of a sphere are invisible)."""
     if obj.shape == "sphere":
@@ -600,7 +600,7 @@ def simulate(sim, scenario: Scenario, seconds: float = 2.0, move_threshold: floa
     """Run the live ``sim`` (built from :func:`to_scene`) and decide stability by displacement.
 
     An object *falls* when it moves more than ``move_threshold`` metres or tips more than
-    ``tilt_threshold`` degrees from its initial pose (see :func:`_tilt`: spinning about the vertical,
+    ``tilt_threshold`` degrees from its initial pose (see :func:`tilt_degrees`: spinning about the vertical,
     a sphere turning or a lying cylinder rolling in place are not tipping);
     ``first_to_fall`` is the first object to fall (ties in one check: the one furthest beyond its
     threshold). ``stop_early`` ends the run at the first fall (``max_displacement`` then covers
@@ -621,7 +621,7 @@ def simulate(sim, scenario: Scenario, seconds: float = 2.0, move_threshold: floa
             disp = float(np.linalg.norm(pos - start[i][0]))
             max_disp = max(max_disp, disp)
             score = disp / move_threshold
-            score = max(score, _tilt(scenario.objects[i], start[i][1], quat) / tilt_threshold)
+            score = max(score, tilt_degrees(scenario.objects[i], start[i][1], quat) / tilt_threshold)
             if first is None and score > worst_score:
                 worst, worst_score = i, score
         if first is None and worst is not None:
