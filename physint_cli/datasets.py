@@ -325,6 +325,12 @@ class ShardedDataset:
         """A whole (small, non-image) field of this split, concatenated across shards."""
         return np.concatenate([np.asarray(self._file(s)[name]) for s in self.shards])
 
+    def shard_arrays(self, fields: list[str] | None = None):
+        """Yield each shard of the split as ``{field: array of its records}`` (one shard in memory at a time)."""
+        for shard in self.shards:
+            f = self._file(shard)
+            yield {k: np.asarray(f[k]) for k in (fields or self.fields)}
+
     def close(self) -> None:
         for f in self._files.values():
             f.close()

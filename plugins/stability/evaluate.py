@@ -47,11 +47,10 @@ def test_split_scores(model, input_size: int, data, batch_size: int) -> dict[str
 
     ds = ShardedDataset(data, "test", method="stability")
     columns = {k: [] for k in ("score", "label", "violation", "height", "subset")}
-    for shard in ds.shards:
-        f = ds._file(shard)
-        columns["score"].append(predict(model, np.asarray(f["image"]), input_size, batch_size))
+    for shard in ds.shard_arrays(["image", "label", "violation", "height", "subset"]):
+        columns["score"].append(predict(model, shard["image"], input_size, batch_size))
         for k in ("label", "violation", "height", "subset"):
-            columns[k].append(np.asarray(f[k]))
+            columns[k].append(shard[k])
     ds.close()
     return {k: np.concatenate(v) for k, v in columns.items()}
 
