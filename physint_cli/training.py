@@ -29,6 +29,51 @@ def resolve_device(device: str) -> str:
     return device
 
 
+PRECISIONS = ("auto", "fp32", "bf16")
+
+
+def resolve_precision(precision: str, device: str) -> str:
+    """``fp32`` or ``bf16`` for ``device``. ``auto`` is bf16 where the hardware multiplies bf16 natively
+    (CPUs with AMX tiles or AVX512-BF16, CUDA GPUs that support it) and fp32 elsewhere."""
+    import torch
+
+    if precision not in PRECISIONS:
+        raise BadInput(f"precision {precision!r} is not valid; use {', '.join(PRECISIONS)}")
+    if precision != "auto":
+        return precision
+    if device.startswith("cuda"):
+        return "bf16" if torch.cuda.is_bf16_supported() else "fp32"
+    cpu = torch.cpu
+    native = getattr(cpu, "_is_amx_tile_supported", lambda: False)() or \
+        getattr(cpu, "_is_avx512_bf16_supported", lambda: False)()
+    return "bf16" if native else "fp32"
+
+
+def autocast(device: str, precision: str):
+    """The autocast context for a resolved precision (``bf16``), or a no-op one (``fp32``)."""
+    import contextlib
+
+    import torch
+
+    if precision != "bf16":
+        return contextlib.nullcontext()
+    return torch.autocast("cuda" if device.startswith("cuda") else "cpu", dtype=torch.bfloat16)
+
+
+def to_device(batch: dict[str, Any], device: str, channels_last: bool = False) -> dict[str, Any]:
+    """Move a batch's tensors to ``device``; image batches (4-D) to channels-last layout if asked."""
+    import torch
+
+    out = {}
+    for k, v in batch.items():
+        if hasattr(v, "to"):
+            v = v.to(device)
+            if channels_last and v.dim() == 4:
+                v = v.contiguous(memory_format=torch.channels_last)
+        out[k] = v
+    return out
+
+
 def seed_everything(seed: int) -> None:
     import torch
 
@@ -110,10 +155,17 @@ def fit(model, train_set, val_set, *, run, epochs: int, batch_size: int, lr: flo
         metric_fn: Callable, device: str = "cpu", resume: bool = False, optimizer: str = "adam",
         weight_decay: float = 0.0, num_workers: int = 0, seed: int = 0, higher_is_better: bool = False,
         meta: dict[str, Any] | None = None, log: Callable[[str], None] = print,
-        make_optimizer: Callable[[Any], tuple[Any, Any]] | None = None) -> FitResult:
+        make_optimizer: Callable[[Any], tuple[Any, Any]] | None = None, precision: str = "fp32",
+        channels_last: bool = False, batch_transform: Callable[[dict[str, Any]], dict[str, Any]] | None = None
+        ) -> FitResult:
     """Supervised training with checkpoints every epoch, resume and DDP.
 
     ``loss_fn(model, batch) -> scalar loss``; ``metric_fn(model, loader) -> float`` on validation.
+    ``precision`` (``fp32``, ``bf16``, ``auto``: see :func:`resolve_precision`) runs the forward
+    passes under autocast (weights and optimiser stay fp32); ``channels_last`` stores the model and
+    image batches channels-last (with bf16 on CPUs with AMX, about 4x faster convolutions).
+    ``batch_transform(batch) -> batch`` runs on each collated training batch (batched augmentation,
+    much cheaper than per record on a CPU).
     ``meta`` is saved in every checkpoint (e.g. the model name and its constructor arguments).
     ``make_optimizer(model) -> (optimizer, scheduler or None)`` replaces the built-in optimizers;
     the scheduler is stepped once per epoch.
@@ -123,7 +175,11 @@ def fit(model, train_set, val_set, *, run, epochs: int, batch_size: int, lr: flo
 
     d = init_distributed(device)
     seed_everything(seed + d.rank)
+    precision = resolve_precision(precision, device)
+    log(f"training on {device} in {precision}{', channels-last' if channels_last else ''}")
     model = model.to(device)
+    if channels_last:
+        model = model.to(memory_format=torch.channels_last)
     if d.enabled:
         model = torch.nn.parallel.DistributedDataParallel(model)
     params = [p for p in model.parameters() if p.requires_grad]
@@ -157,8 +213,11 @@ def fit(model, train_set, val_set, *, run, epochs: int, batch_size: int, lr: flo
         model.train()
         total, count = 0.0, 0
         for batch in loader:
-            batch = {k: v.to(device) if hasattr(v, "to") else v for k, v in batch.items()}
-            loss = loss_fn(model, batch)
+            if batch_transform is not None:
+                batch = batch_transform(batch)
+            batch = to_device(batch, device, channels_last)
+            with autocast(device, precision):
+                loss = loss_fn(model, batch)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
@@ -167,7 +226,7 @@ def fit(model, train_set, val_set, *, run, epochs: int, batch_size: int, lr: flo
         if scheduler is not None:
             scheduler.step()
         model.eval()
-        with torch.no_grad():
+        with torch.no_grad(), autocast(device, precision):
             val = float(metric_fn(unwrap(model), val_loader))
         point = {"epoch": epoch + 1, "train_loss": total / max(count, 1), "val_metric": val}
         history.append(point)

@@ -268,3 +268,51 @@ def test_a_dying_worker_is_a_clear_failure_and_finished_shards_are_kept(toy_plug
     assert "Traceback" not in err
     code, _, err = call("dataset", "toy", "--preset", "tiny", "--out", str(out), "--workers", "2", "--set", "data.slow=0.3")
     assert code == 2 and "already holds a different dataset" in err  # the config differs: not mixed in
+
+
+def test_fit_in_bf16_channels_last_with_a_batch_transform_learns(tmp_path):
+    """fit's mixed precision and batched transform: a tiny conv net still learns a separable task."""
+    import torch
+
+    from physint_cli.errors import BadInput
+    from physint_cli.runs import Run
+    from physint_cli.training import fit, resolve_precision
+
+    g = torch.Generator().manual_seed(0)
+    images = torch.rand(96, 3, 8, 8, generator=g)
+    labels = (torch.arange(96) % 2).float()
+    images[labels == 1, 0] += 0.5  # class 1: a redder image
+
+    class Records(torch.utils.data.Dataset):
+        def __len__(self):
+            return len(labels)
+
+        def __getitem__(self, i):
+            return {"image": images[i], "label": labels[i]}
+
+    seen = []
+
+    def halve_contrast(batch):  # runs once per collated training batch
+        seen.append(batch["image"].shape[0])
+        return {**batch, "image": 0.5 + 0.5 * (batch["image"] - 0.5)}
+
+    net = torch.nn.Sequential(torch.nn.Conv2d(3, 4, 3), torch.nn.ReLU(), torch.nn.AdaptiveAvgPool2d(1),
+                              torch.nn.Flatten(), torch.nn.Linear(4, 1))
+
+    def loss_fn(model, batch):
+        return torch.nn.functional.binary_cross_entropy_with_logits(model(batch["image"]).float().reshape(-1),
+                                                                    batch["label"])
+
+    def accuracy(model, loader):
+        hits = [((model(b["image"]).float().reshape(-1) > 0).float() == b["label"]).float() for b in loader]
+        return float(torch.cat(hits).mean())
+
+    (tmp_path / "checkpoints").mkdir()
+    result = fit(net, Records(), Records(), run=Run(tmp_path), epochs=25, batch_size=32, lr=0.05,
+                 loss_fn=loss_fn, metric_fn=accuracy, precision="bf16", channels_last=True,
+                 batch_transform=halve_contrast, higher_is_better=True, log=lambda _: None)
+    assert result.best_metric >= 0.9
+    assert seen[:3] == [32, 32, 32] and len(seen) == 25 * 3
+    assert resolve_precision("fp32", "cpu") == "fp32" and resolve_precision("auto", "cpu") in ("fp32", "bf16")
+    with pytest.raises(BadInput, match="fp32, bf16"):
+        resolve_precision("fp8", "cpu")

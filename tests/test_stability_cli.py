@@ -69,3 +69,45 @@ def test_train_eval_deploy_tiny(tiny_dataset, tmp_path):
     assert code == 2 and "stackability" in err
     code, stdout, err = call("train", "stability", "--preset", "tiny", "--data", str(out), "--model", "nope")
     assert code == 2 and "unknown model" in err
+    code, _, err = call("deploy", "stability", "--run", str(tmp_path / "run"), "--task", "stack", "--set", "deploy.pool=0")
+    assert code == 2 and "deploy.pool" in err  # an empty object pool
+    code, _, err = call("deploy", "stability", "--run", str(tmp_path / "run"), "--set", "deploy.agents=oracle,robot")
+    assert code == 2 and "robot" in err and "predictor" in err
+
+
+def _stable_only_dataset(root: Path) -> Path:
+    """A stability-shaped dataset whose train split holds stable stacks only."""
+    from physint_cli.datasets import finish_manifest, start_manifest, write_shard
+
+    manifest = start_manifest(root, {"method": "stability", "scene": "ccs", "backend": "mujoco", "preset": "tiny",
+                                     "seed": 0, "config": {}})
+    rng = np.random.default_rng(0)
+    shards = [write_shard(root, f"{split}-00000", split, {"image": rng.integers(0, 256, (6, 32, 32, 3), dtype=np.uint8),
+                                                          "label": np.zeros(6, np.int64)})
+              for split in ("train", "val", "test")]
+    finish_manifest(root, manifest, shards, {}, 0.0)
+    return root
+
+
+def test_bad_input_exits_2_with_one_clear_line(tiny_dataset, tmp_path):
+    out, _ = tiny_dataset
+    stable_only = _stable_only_dataset(tmp_path / "stable-only")
+    code, _, err = call("train", "stability", "--preset", "tiny", "--data", str(stable_only))
+    assert code == 2 and "no unstable images" in err and "Traceback" not in err
+    code, _, err = call("train", "stability", "--preset", "tiny", "--data", str(out), "--set", "train.input_size=8")
+    assert code == 2 and "cannot be built with train.input_size=8" in err and "16x16" in err
+    code, _, err = call("train", "stability", "--preset", "tiny", "--data", str(out), "--model", "alexnet")
+    assert code == 2 and "alexnet" in err and "63x63" in err  # tiny images are 32 px
+    code, _, err = call("train", "freefall", "--preset", "tiny", "--data", str(out))
+    assert code == 2 and "made for method 'stability'" in err
+
+
+def test_tiny_pipeline_on_robosuite(tmp_path, monkeypatch):
+    """``physint pipeline stability --preset tiny``: dataset, train, eval and deploy, on robosuite's simulator."""
+    monkeypatch.setenv("PHYSINT_HOME", str(tmp_path))
+    code, stdout, err = call("pipeline", "stability", "--preset", "tiny", "--backend", "robosuite", "--json")
+    assert code == 0, err
+    result = json.loads(stdout)
+    text = json.dumps(result)
+    assert '"backend": "robosuite"' in text
+    assert "agreement_rate" in text and "accuracy" in text and "violation_area" in text

@@ -109,6 +109,20 @@ def test_rmsprop_for_uses_the_inception_v4_solver():
     assert opt.param_groups[0]["lr"] == 3e-3
 
 
+def test_adamw_cosine_warms_up_then_decays_to_zero_as_training_ends():
+    m = model.compact_cnn(width=4)
+    opt, sched = model.adamw_cosine(m, lr=2e-3, weight_decay=0.05, epochs=5)
+    assert isinstance(opt, torch.optim.AdamW) and opt.param_groups[0]["weight_decay"] == 0.05
+    lrs = []
+    for _ in range(6):                                        # one scheduler step per epoch
+        lrs.append(opt.param_groups[0]["lr"])
+        opt.step()
+        sched.step()
+    assert lrs[0] == pytest.approx(1e-3)                      # warm-up: half the peak in the first epoch
+    assert lrs[1] == pytest.approx(2e-3)                      # the peak, then a half cosine
+    assert lrs[1] > lrs[2] > lrs[3] > lrs[4] > lrs[5] == pytest.approx(0.0, abs=1e-12)
+
+
 def _towers(n: int, g: torch.Generator, size: int = 32) -> tuple[torch.Tensor, torch.Tensor]:
     """Three-block 'towers' on random backgrounds; label 1 (unstable) when the top block is shifted
     sideways by 3–5 px.  Both classes have the same colours and block areas, so only the spatial

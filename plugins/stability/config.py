@@ -15,12 +15,12 @@ from physint_cli.config import field_
 
 @dataclass
 class DataConfig:
-    scenarios: int = field_(2000, "scenarios over all splits (thesis: 20,000)")
+    scenarios: int = field_(6000, "scenarios over all splits (thesis: 20,000)")
     train_fraction: float = field_(0.70, "fraction of scenarios in the train split")
     val_fraction: float = field_(0.15, "fraction in the validation split (the rest is test)")
-    per_shard: int = field_(25, "scenarios per shard (work unit)")
-    cameras: int = field_(8, "cameras orbiting each stack (thesis: 16)")
-    resolution: int = field_(64, "image side in pixels (thesis: 224)")
+    per_shard: int = field_(50, "scenarios per shard (work unit)")
+    cameras: int = field_(6, "cameras orbiting each stack (thesis: 16)")
+    resolution: int = field_(128, "image side in pixels (thesis: 224)")
     textures: int = field_(25, "background textures (thesis: 25)")
     lights: int = field_(5, "lighting conditions (thesis: 5)")
     camera_jitter: float = field_(0.02, "camera position noise (m)")
@@ -32,20 +32,23 @@ class DataConfig:
 @dataclass
 class TrainConfig:
     model: str = field_("cnn", "cnn (CPU default), alexnet or inception-v4 (paper)")
-    epochs: int = field_(12, "passes over the training images (thesis: 80)")
+    epochs: int = field_(22, "passes over the training images (thesis: 80)")
     batch_size: int = field_(64, "images per batch")
-    optimizer: str = field_("adam", "adam, or rmsprop with the Inception-v4 paper's solver settings")
-    lr: float = field_(1e-3, "learning rate (rmsprop: the paper's schedule starts at 0.045)")
-    weight_decay: float = field_(1e-4, "L2 weight decay")
+    optimizer: str = field_("adamw", "adamw (cosine learning-rate schedule), adam (constant), or rmsprop with the "
+                                      "Inception-v4 paper's solver settings")
+    lr: float = field_(2e-3, "peak learning rate (rmsprop: the paper's schedule starts at 0.045)")
+    weight_decay: float = field_(0.05, "weight decay (decoupled for adamw, L2 otherwise)")
     augment: bool = field_(True, "colour jitter, aspect ratio, crops, mirror, small rotations")
     width: int = field_(32, "channels of the compact CNN's first layer")
-    input_size: int = field_(64, "network input side in pixels")
+    input_size: int = field_(128, "network input side in pixels")
     num_workers: int = field_(0, "DataLoader worker processes")
+    precision: str = field_("auto", "fp32, bf16, or auto: bf16 autocast where the hardware has native bf16 "
+                                    "(CPUs with AMX or AVX512-BF16, recent GPUs)")
 
 
 @dataclass
 class EvalConfig:
-    occlusion_images: int = field_(150, "unstable test images for the occlusion study (thesis: 1,500)")
+    occlusion_images: int = field_(300, "unstable test images for the occlusion study (thesis: 1,500)")
     occlusion_sigma: float = field_(30.0, "Gaussian blur sigma at 224 px (scaled with the resolution)")
     occlusion_patch: int = field_(14, "patch side at 224 px (scaled)")
     occlusion_stride: int = field_(8, "patch stride at 224 px (scaled)")
@@ -55,11 +58,13 @@ class EvalConfig:
 
 @dataclass
 class DeployConfig:
-    episodes: int = field_(10, "stacking / counterbalancing episodes per scenario (thesis: 50)")
+    episodes: int = field_(50, "stacking / counterbalancing episodes per scenario (thesis: 50)")
     pool: int = field_(12, "objects in the stacking pool (thesis: 12)")
     anneal_steps: int = field_(30, "simulated-annealing steps per placement")
     anneal_radius: float = field_(0.03, "placement search radius around the trunk (m)")
     cameras: int = field_(6, "cameras watching the stack while stacking (thesis: 6)")
+    agents: str = field_("", "comma-separated agents of predictor, oracle, random ('' = predictor with --run, "
+                             "oracle and random)")
 
 
 @dataclass

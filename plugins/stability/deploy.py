@@ -1303,8 +1303,8 @@ def _stackability_figures(ctx: Context, pool: list[StackObject], agents_out: dic
 # ==============================================================================================
 
 def _agents(ctx: Context) -> list[str]:
-    chosen = ctx.options.get("agents")
-    if chosen is None:
+    chosen = ctx.options.get("agents") or ctx.config.deploy.agents
+    if not chosen:
         return (["predictor"] if ctx.source_run is not None else []) + ["oracle", "random"]
     if isinstance(chosen, str):
         chosen = [a.strip() for a in chosen.split(",") if a.strip()]

@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from physint_cli.errors import BadInput
 from physint_cli.method import Context
 
 SUBSETS = ("cubes", "ccs")
@@ -182,6 +183,9 @@ def occlusion_study(ctx: Context, data) -> dict[str, Any]:
     ds = ShardedDataset(data, "test", method="stability")
     unstable = np.flatnonzero(ds.column("label") == 1)
     ds.close()
+    if ctx.config.eval.occlusion_images > 0 and len(unstable) == 0:
+        raise BadInput(f"test split of {data} has no unstable images: the occlusion study (Table 3.4) needs some "
+                       f"(or set eval.occlusion_images=0)")
     rng = np.random.default_rng(unit_seed(ctx.seed, "occlusion"))
     chosen = sorted(int(i) for i in rng.choice(unstable, size=min(ctx.config.eval.occlusion_images, len(unstable)),
                                                  replace=False)) if len(unstable) else []

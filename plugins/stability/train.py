@@ -31,24 +31,40 @@ def build_model(name: str, input_size: int, width: int):
     kwargs: dict[str, Any] = {"in_size": input_size}
     if "width" in inspect.signature(build).parameters:
         kwargs["width"] = width
-    return build(**kwargs), kwargs
+    try:
+        return build(**kwargs), kwargs
+    except ValueError as exc:  # e.g. an input size the architecture cannot take
+        raise BadInput(f"model {name!r} cannot be built with train.input_size={input_size}: {exc}") from None
 
 
 class ImageLabel:
-    """ShardedDataset record -> {"image": float (3, S, S) in [0, 1], "label": float ()}."""
+    """ShardedDataset record -> {"image": ``transform(image)``, "label": float ()}; without a transform
+    the image stays uint8 (H, W, 3), for a batched transform after collation."""
 
-    def __init__(self, transform):
+    def __init__(self, transform=None):
         self.transform = transform
 
     def __call__(self, record: dict[str, np.ndarray]) -> dict[str, Any]:
         import torch
 
-        return {"image": self.transform(record["image"]), "label": torch.tensor(float(record["label"]))}
+        image = torch.from_numpy(np.ascontiguousarray(record["image"]))
+        return {"image": self.transform(image) if self.transform is not None else image,
+                "label": torch.tensor(float(record["label"]))}
+
+
+class BatchAugment:
+    """Collated batch {"image": uint8 (N, H, W, 3), ...} -> float (N, 3, S, S), augmented as one batch."""
+
+    def __init__(self, transform):
+        self.transform = transform
+
+    def __call__(self, batch: dict[str, Any]) -> dict[str, Any]:
+        return {**batch, "image": self.transform(batch["image"])}
 
 
 def logits_of(model, images):
     out = model(images)
-    return out.reshape(out.shape[0])
+    return out.reshape(out.shape[0]).float()  # fp32 logits for the loss, also under bf16 autocast
 
 
 def accuracy(model, loader) -> float:
@@ -71,15 +87,19 @@ def train(ctx: Context) -> dict[str, Any]:
     from physint_cli.training import fit
 
     from .augment import EvalTransform, TrainTransform
-    from .model import logistic_loss, rmsprop_for
+    from .model import adamw_cosine, logistic_loss, rmsprop_for
 
     cfg = ctx.config.train
     name = ctx.options.get("model", cfg.model)
     model, kwargs = build_model(name, cfg.input_size, cfg.width)
     train_tf = TrainTransform(cfg.input_size) if cfg.augment else EvalTransform(cfg.input_size)
-    train_set = ShardedDataset(ctx.data, "train", FIELDS, transform=ImageLabel(train_tf), method="stability")
+    train_set = ShardedDataset(ctx.data, "train", FIELDS, transform=ImageLabel(), method="stability")
     val_set = ShardedDataset(ctx.data, "val", FIELDS, transform=ImageLabel(EvalTransform(cfg.input_size)), method="stability")
     labels = train_set.column("label")
+    if len(labels) == 0 or labels.min() == labels.max():
+        what = "no images" if len(labels) == 0 else ("no unstable images" if labels.max() == 0 else "no stable images")
+        raise BadInput(f"dataset {ctx.data} has {what} in its train split; the predictor learns from stable and "
+                       f"unstable stacks: make one with `physint dataset stability`")
     ctx.log(f"training {name} on {len(train_set)} images ({labels.mean():.0%} unstable), validating on {len(val_set)}")
 
     def loss_fn(net, batch):
@@ -89,12 +109,16 @@ def train(ctx: Context) -> dict[str, Any]:
     if cfg.optimizer == "rmsprop":  # the Inception-v4 paper's solver (thesis: "hyper-parameters as in [192]")
         def make_optimizer(net):
             return rmsprop_for(net, paper=True, lr=cfg.lr, weight_decay=cfg.weight_decay)
+    elif cfg.optimizer == "adamw":  # the CPU default: AdamW, learning rate on a cosine over the epochs
+        def make_optimizer(net):
+            return adamw_cosine(net, lr=cfg.lr, weight_decay=cfg.weight_decay, epochs=cfg.epochs)
     elif cfg.optimizer != "adam":
-        raise BadInput(f"train.optimizer must be adam or rmsprop, got {cfg.optimizer!r}")
+        raise BadInput(f"train.optimizer must be adamw, adam or rmsprop, got {cfg.optimizer!r}")
     result = fit(model, train_set, val_set, run=Run(ctx.run), epochs=cfg.epochs, batch_size=cfg.batch_size,
                  lr=cfg.lr, weight_decay=cfg.weight_decay, loss_fn=loss_fn, metric_fn=accuracy, device=ctx.device,
                  seed=ctx.seed, resume=bool(ctx.options.get("resume")), log=ctx.log, higher_is_better=True,
-                 num_workers=cfg.num_workers, make_optimizer=make_optimizer,
+                 num_workers=cfg.num_workers, make_optimizer=make_optimizer, precision=cfg.precision,
+                 channels_last=True, batch_transform=BatchAugment(train_tf),
                  meta={"method": "stability", "model": name, "kwargs": kwargs, "scene": ctx.scene})
     _plot_curves(Run(ctx.run), result.history)
     return {"model": name, "epochs": result.epochs, "val_accuracy": result.best_metric,
