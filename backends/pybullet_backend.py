@@ -256,7 +256,7 @@ class PybulletSimulation(Simulation):
         self.solver_iterations = solver_iterations
         self.robot_visual = robot_visual
         self.near, self.far = float(near), float(far)
-        with _stdout_to_stderr():  # Bullet's C code greets with "argv[0]=" on stdout, which carries results
+        with _silence_stdout():  # Bullet's C code greets with "argv[0]=" on stdout, which carries results
             self._p = BulletClient(connection_mode=pybullet.DIRECT)
         self._cid = self._p._client  # physics client id, for direct calls on hot paths
         self._tmpdir: str | None = None  # PNG textures and mesh .obj files, made on first need
@@ -675,8 +675,9 @@ class PybulletSimulation(Simulation):
 
 
 @contextlib.contextmanager
-def _stdout_to_stderr():
-    """Send what C code prints to stdout (file descriptor 1) to stderr for the duration."""
+def _silence_stdout():
+    """Drop what C code prints to stdout (file descriptor 1) for the duration (Bullet's greeting,
+    once per connection: noise in every worker's log)."""
     try:
         libc = ctypes.CDLL(None)
     except OSError:  # no C library to flush through (unusual platforms): leave stdout alone
@@ -684,13 +685,15 @@ def _stdout_to_stderr():
         return
     sys.stdout.flush()
     saved = os.dup(1)
+    devnull = os.open(os.devnull, os.O_WRONLY)
     try:
-        os.dup2(2, 1)
+        os.dup2(devnull, 1)
         yield
-        libc.fflush(None)  # push C's buffered output out while fd 1 still points at stderr
+        libc.fflush(None)  # push C's buffered output out while fd 1 still points at /dev/null
     finally:
         os.dup2(saved, 1)
         os.close(saved)
+        os.close(devnull)
 
 
 def _stack_args(per_geom: list[dict], kind: str) -> dict:

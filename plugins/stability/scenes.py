@@ -50,7 +50,7 @@ from .physics import StackLabel, StackObject, analyse, clip_segment, inradius, s
 __all__ = [
     "SUBSETS", "KINDS", "HEIGHTS", "HEIGHT_WEIGHTS", "SUBSET_WEIGHTS", "STABLE_MARGIN", "STABLE_MARGIN_ABS",
     "VCOM_MARGIN", "VCOM_MARGIN_ABS", "VPSF_OFFSET_ABS", "MAX_LOAD_RATIO", "CURVED_TOP", "CURVED_TOP_MAX_HEIGHT",
-    "COUNTERBALANCE", "CROP_PROB", "N_LIGHTING", "N_TEXTURES", "Scenario", "PlannedScenario",
+    "COUNTERBALANCE", "CROP_PROB", "CUBOID_EDGE", "CUBOID_MAX_ASPECT", "N_LIGHTING", "N_TEXTURES", "Scenario", "PlannedScenario",
     "Outcome", "kinds_for", "height_counts", "sample_height", "balanced_kinds", "plan_scenarios", "sample_scenario",
     "lighting_conditions", "default_textures", "to_scene", "simulate",
 ]
