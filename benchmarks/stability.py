@@ -53,12 +53,13 @@ class Bench:
         self.times_file = home / "benchmark_times.json"
         self.times = json.loads(self.times_file.read_text()) if self.times_file.exists() else {}
 
-    def run(self, key: str, done: Path, args: list[str]) -> float | None:
-        """Run ``physint ARGS`` unless ``done`` exists; remember and return its wall time (s)."""
-        if done.exists():
+    def run(self, key: str, done: bool, args: list[str]) -> float | None:
+        """Run ``physint ARGS`` unless ``done``; remember and return its wall time (s)."""
+        if done:
             return self.times.get(key)
-        cmd = physint() + args + ["--preset", self.preset, "--quiet"]
-        print("$ " + " ".join(["physint"] + cmd[len(physint()):]), flush=True)
+        exe = physint()
+        cmd = exe + args + ["--preset", self.preset, "--quiet"]
+        print("$ " + " ".join(["physint"] + cmd[len(exe):]), flush=True)
         env = dict(os.environ, PHYSINT_HOME=str(self.home))
         t0 = time.perf_counter()
         rc = subprocess.run(cmd, env=env, stdout=subprocess.DEVNULL).returncode
@@ -69,10 +70,17 @@ class Bench:
         self.times_file.write_text(json.dumps(self.times, indent=2))
         return seconds
 
+    def finished_run(self, out: Path) -> bool:
+        """Whether ``out`` holds a finished eval/deploy run; an interrupted one is removed (they restart)."""
+        if (out / "metrics.json").exists():
+            return True
+        shutil.rmtree(out, ignore_errors=True)
+        return False
+
     def dataset(self, scene: str, backend: str | None = None) -> Path:
         backend = backend or self.backend
-        out = self.home / f"data-{scene}-{backend}"
-        self.run(f"dataset-{scene}-{backend}", out / "manifest.json" if _complete(out) else out / ".never",
+        out = self.home / f"data-{scene}-{backend}"  # an interrupted generation resumes its shards
+        self.run(f"dataset-{scene}-{backend}", _complete(out),
                  ["dataset", "stability", "--scene", scene, "--backend", backend, "--workers", str(self.workers),
                   "--out", str(out)])
         return out
@@ -81,14 +89,14 @@ class Bench:
         backend = backend or self.backend
         out = self.home / f"train-{scene}-{backend}"
         resume = ["--resume"] if (out / "run.json").exists() else []  # an interrupted training goes on
-        self.run(f"train-{scene}-{backend}", out / "metrics.json",
+        self.run(f"train-{scene}-{backend}", (out / "metrics.json").exists(),
                  ["train", "stability", "--data", str(data), "--backend", backend, "--out", str(out), *resume])
         return out
 
     def eval(self, name: str, run: Path, backend: str | None = None, *sets: str) -> dict:
         out = self.home / f"eval-{name}"
         extra = [a for s in sets for a in ("--set", s)]
-        self.run(f"eval-{name}", out / "metrics.json",
+        self.run(f"eval-{name}", self.finished_run(out),
                  ["eval", "stability", "--run", str(run), "--backend", backend or self.backend,
                   "--workers", str(self.workers), "--out", str(out), *extra])
         return _metrics(out)
@@ -96,7 +104,7 @@ class Bench:
     def deploy(self, name: str, task: str, run: Path | None, agents: str, *extra: str) -> dict:
         out = self.home / f"deploy-{name}"
         source = ["--run", str(run)] if run is not None else []
-        self.run(f"deploy-{name}", out / "metrics.json",
+        self.run(f"deploy-{name}", self.finished_run(out),
                  ["deploy", "stability", "--task", task, *source, "--set", f"deploy.agents={agents}", "--backend", self.backend,
                   "--workers", str(self.workers), "--out", str(out), *extra])
         return _metrics(out)
