@@ -198,8 +198,13 @@ def load_file(path: str | Path) -> dict[str, Any]:
 
 
 def resolve(cls, presets: dict[str, dict[str, Any]], preset: str = "small",
-            config_file: str | Path | None = None, overrides: list[str] | None = None) -> Any:
-    """Build a config: defaults <- preset <- config file <- --set overrides."""
+            config_file: str | Path | None = None, overrides: list[str] | None = None,
+            skip_file_sections: tuple[str, ...] = ()) -> Any:
+    """Build a config: defaults <- preset <- config file <- --set overrides.
+
+    Keys of the config file under a top-level section in ``skip_file_sections`` are not read (a
+    trained run's saved config fixes its data and model, not how it is evaluated or deployed).
+    """
     if preset not in presets:
         raise BadInput(f"unknown preset {preset!r}{suggest(preset, presets)}; valid: {', '.join(presets)}")
     cfg = cls()
@@ -207,7 +212,8 @@ def resolve(cls, presets: dict[str, dict[str, Any]], preset: str = "small",
         set_key(cfg, key, value, source=f"preset {preset}")
     if config_file:
         for key, value in load_file(config_file).items():
-            set_key(cfg, key, value, source=f"--config {config_file}")
+            if key.split(".", 1)[0] not in skip_file_sections:
+                set_key(cfg, key, value, source=f"--config {config_file}")
     for item in overrides or []:
         key, value = parse_set(item)
         set_key(cfg, key, value)

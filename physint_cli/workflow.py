@@ -21,6 +21,10 @@ from .plugins import get_plugins
 from .runs import Run, home, latest_run, open_run
 from .training import resolve_device
 
+# config sections named after the verbs that use a trained run: taken from the preset and --set,
+# never from the run's saved config
+DOWNSTREAM_SECTIONS = ("eval", "deploy")
+
 
 @dataclass
 class Options:
@@ -59,10 +63,13 @@ def make_context(opts: Options, base: dict[str, Any] | None = None) -> tuple[Any
     scene = opts.scene or base.get("scene") or method.scenes[0]
     method.check_scene(scene)
     preset = opts.preset or base.get("preset") or "small"
-    config_file = opts.config
+    config_file, skip = opts.config, ()
     if config_file is None and base.get("_config_file"):
         config_file = base["_config_file"]
-    cfg = configs.resolve(method.config_class, method.presets, preset, config_file, opts.sets)
+        # a trained run fixes its data and model; how it is evaluated and deployed comes from the
+        # preset and --set, so a run trained before a preset changed is evaluated the current way
+        skip = DOWNSTREAM_SECTIONS if base.get("_downstream") else ()
+    cfg = configs.resolve(method.config_class, method.presets, preset, config_file, opts.sets, skip)
     if opts.workers < 1:
         raise BadInput(f"--workers must be >= 1, got {opts.workers}")
     options: dict[str, Any] = {}
@@ -200,7 +207,7 @@ def _trained(opts: Options) -> tuple[Run, dict[str, Any]]:
     source = open_run(opts.run, opts.method) if opts.run else latest_run(opts.method, "train")
     info = source.info
     # evaluate with the config the model was trained with; --preset/--set/--backend still override
-    base = {**info, "_config_file": source.path / "config.yaml"}
+    base = {**info, "_config_file": source.path / "config.yaml", "_downstream": True}
     return source, base
 
 

@@ -33,6 +33,9 @@ def test_config_presets_files_and_sets(toy_plugins, tmp_path):
     f.write_text("train:\n  lr: 0.5\ndata:\n  val: 4\n")
     cfg = configs.resolve(Toy.config_class, Toy.presets, "paper", f, ["train.lr=1e-3", "data.test=7"])
     assert (cfg.data.train, cfg.data.val, cfg.data.test, cfg.train.lr) == (1000, 4, 7, 1e-3)
+    # a trained run's saved config read for a downstream verb: its sections named there are skipped
+    cfg = configs.resolve(Toy.config_class, Toy.presets, "tiny", f, [], skip_file_sections=("train",))
+    assert (cfg.data.val, cfg.train.lr) == (4, 0.05)
     with pytest.raises(BadInput, match="unknown key 'train.learning_rate'.*valid keys: data.train"):
         configs.resolve(Toy.config_class, Toy.presets, "tiny", None, ["train.learning_rate=1"])
     with pytest.raises(BadInput, match="train.epochs: expected int, got 'many'"):
