@@ -634,17 +634,16 @@ class MujocoSimulation(Simulation):
         robot_visual: ``"collision"`` (default) draws the Panda with its low-poly collision
             meshes (~8x faster to render, ~30x faster to build); ``"full"`` draws robosuite's
             detailed visual meshes.
-        goal_update_mode: how a robot action moves the end-effector goal, as in robosuite's
-            OSC: ``"achieved"`` (default, robosuite's default) from where the hand is now,
-            ``"desired"`` from the previous goal.
+        goal_update_mode: overrides the scene robot's ``goal_mode`` (see ``spec.Robot``):
+            ``"achieved"`` from where the hand is now, ``"desired"`` from the previous goal.
     """
 
     backend = "mujoco"
 
-    def __init__(self, scene: Scene, robot_visual: str = "collision", goal_update_mode: str = "achieved"):
+    def __init__(self, scene: Scene, robot_visual: str = "collision", goal_update_mode: str | None = None):
         if robot_visual not in ("collision", "full"):
             raise SpecError(f"robot_visual {robot_visual!r} is not supported; allowed: collision, full")
-        if goal_update_mode not in ("achieved", "desired"):
+        if goal_update_mode not in (None, "achieved", "desired"):
             raise SpecError(f"goal_update_mode {goal_update_mode!r} is not supported; allowed: achieved, desired")
         self.robot_visual = robot_visual
         self.goal_update_mode = goal_update_mode
@@ -670,7 +669,8 @@ class MujocoSimulation(Simulation):
         if scene.robot is not None:
             from .mujoco_panda import MujocoPanda
 
-            robot = MujocoPanda(world, scene.robot, names, goal_update_mode=self.goal_update_mode)
+            robot = MujocoPanda(world, scene.robot, names,
+                                goal_update_mode=self.goal_update_mode or scene.robot.goal_mode)
         # everything built: replace the previous world
         if self.world is not None:
             self.world.close()

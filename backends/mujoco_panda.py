@@ -34,7 +34,7 @@ from typing import Any
 import numpy as np
 
 from .base import Robot, RobotState, check_part
-from .spec import GRIPPER_CLOSE, GRIPPER_NOOP, GRIPPER_OPEN, SpecError, unknown_name, validate_action
+from .spec import GOAL_LEAD_STEPS, GRIPPER_CLOSE, GRIPPER_NOOP, GRIPPER_OPEN, SpecError, unknown_name, validate_action
 from .spec import Robot as RobotSpec
 
 PREFIX = "panda/"
@@ -349,8 +349,12 @@ class MujocoPanda(PandaSensing):
         if self.goal_update_mode == "achieved":  # robosuite's default: from where the hand is now
             self.world.forward()
             self.controller.goal_pos = self.world.data.site_xpos[self.panda.site] + delta
-        else:  # "desired": from the previous goal, so a sequence of deltas is followed without drift
-            self.controller.goal_pos = self.controller.goal_pos + delta
+        else:  # "desired": from the previous goal, so a sequence of deltas is followed without drift,
+            # but never more than GOAL_LEAD_STEPS displacements ahead of the hand (pressing on the table)
+            self.world.forward()
+            hand = self.world.data.site_xpos[self.panda.site]
+            lead = GOAL_LEAD_STEPS * self.spec.max_delta
+            self.controller.goal_pos = hand + np.clip(self.controller.goal_pos + delta - hand, -lead, lead)
         if a[3] != GRIPPER_NOOP:
             self.grip_command = int(a[3])
             self.world.data.ctrl[self.panda.finger_act] = FINGER_CLOSED if a[3] == GRIPPER_CLOSE else FINGER_OPEN

@@ -20,7 +20,7 @@ import pybullet_data
 
 from .base import Robot, RobotState, check_part
 from .pybullet_backend import compose, invert
-from .spec import GRIPPER_CLOSE, GRIPPER_OPEN
+from .spec import GOAL_LEAD_STEPS, GRIPPER_CLOSE, GRIPPER_OPEN
 from .spec import Robot as RobotSpec
 from .spec import validate_action
 
@@ -42,7 +42,6 @@ FINGER_FRICTION = 1.0  # sliding friction of the rubber finger pads
 LINK_FRICTION = 0.5  # sliding friction of the rest of the arm
 PEDESTAL_RGBA = (0.25, 0.25, 0.28, 1.0)
 PEDESTAL_SIZE = 0.24  # edge of the square pedestal under the arm's base (m)
-MAX_LEAD_STEPS = 2  # how many control steps' worth of displacement the target may lead the hand by
 IK_ITERATIONS = 100
 IK_TOLERANCE = 1e-6  # m
 IK_DAMPING = 1e-3  # damped least squares: small, for an exact solution away from singularities
@@ -193,11 +192,13 @@ class PybulletPanda(Robot):
     def act(self, action) -> RobotState:
         a = validate_action(action)  # raises SpecError before anything moves
         delta = np.clip(a[:3], -self.spec.max_delta, self.spec.max_delta)
-        # the target accumulates clipped displacements, but never runs more than
-        # MAX_LEAD_STEPS control steps ahead of the hand (e.g. while pressing on the table)
         ee = self._ee_pos()
-        lead = MAX_LEAD_STEPS * self.spec.max_delta
-        self._target = ee + np.clip(self._target + delta - ee, -lead, lead)
+        if self.spec.goal_mode == "achieved":  # from where the hand is
+            self._target = ee + delta
+        else:  # "desired": the target accumulates clipped displacements, but never runs more than
+            # GOAL_LEAD_STEPS control steps ahead of the hand (e.g. while pressing on the table)
+            lead = GOAL_LEAD_STEPS * self.spec.max_delta
+            self._target = ee + np.clip(self._target + delta - ee, -lead, lead)
         if a[3] == GRIPPER_OPEN:
             self._gripper_target = FINGER_OPEN
         elif a[3] == GRIPPER_CLOSE:

@@ -47,7 +47,8 @@ import numpy as np
 
 from . import ensure_headless_gl
 from .base import RobotState
-from .spec import GRIPPER_NOOP, GRIPPER_OPEN, Body, Geom, Scene, SpecError, Texture, validate_action
+from .spec import (GOAL_LEAD_STEPS, GOAL_MODES, GRIPPER_NOOP, GRIPPER_OPEN, Body, Geom, Scene, SpecError, Texture,
+                   validate_action)
 
 ensure_headless_gl()  # before robosuite imports mujoco, which picks its OpenGL platform on import
 
@@ -237,6 +238,7 @@ def osc_position_config(max_delta: float) -> dict:
 
     OSC_POSITION maps an input in [input_min, input_max] linearly onto a displacement in
     [output_min, output_max]; with both ranges ±max_delta the input is the displacement in metres.
+    (The robot passes ``GOAL_LEAD_STEPS * max_delta``: a "desired"-mode goal may be that far ahead.)
     """
     config = load_composite_controller_config(robot="Panda")
     arm = load_part_controller_config(default_controller="OSC_POSITION")
@@ -263,7 +265,7 @@ class SceneEnv(ManipulationEnv):
         try:
             super().__init__(
                 robots=["Panda"] if robot else [],
-                controller_configs=osc_position_config(robot.max_delta) if robot else None,
+                controller_configs=osc_position_config(robot.max_delta * GOAL_LEAD_STEPS) if robot else None,
                 initialization_noise=None,
                 use_camera_obs=False, has_renderer=False, has_offscreen_renderer=False,
                 control_freq=robot.control_hz if robot else 20, horizon=2 ** 62, ignore_done=True,
@@ -414,7 +416,10 @@ class RobosuiteRobot(PandaSensing):
         self.spec = spec
         self.world = world
         self.body_names = list(body_names)
+        if goal_update_mode not in GOAL_MODES:
+            raise SpecError(f"goal_update_mode {goal_update_mode!r} is not supported; allowed: {', '.join(GOAL_MODES)}")
         self.goal_update_mode = goal_update_mode
+        self._goal: np.ndarray | None = None  # "desired" mode: the hand's goal in the world frame
         self._robot = robot  # robosuite's Robot (FixedBaseRobot) of the environment
         gripper = self._robot.gripper[ARM]
         model = self.world.model
@@ -450,7 +455,9 @@ class RobosuiteRobot(PandaSensing):
         self._robot.reset(deterministic=True)  # arm qpos, fresh controllers
         arm = self._robot.part_controllers[ARM]
         hold_gripper_down(arm)
-        arm.set_goal_update_mode(self.goal_update_mode)
+        # robosuite always moves the goal from the hand; "desired" mode is kept here (see act)
+        arm.set_goal_update_mode("achieved")
+        self._goal = None
         # robosuite's fresh goal is the hand's pose in the world frame, but goals live in the base
         # frame: without a goal, the first set_goal starts from the hand's pose in the right frame
         arm.goal_pos = arm.goal_ori = None
@@ -464,7 +471,15 @@ class RobosuiteRobot(PandaSensing):
     def act(self, action) -> RobotState:
         a = validate_action(action)  # SpecError before anything moves
         gripper = self._action[3] if a[3] == GRIPPER_NOOP else a[3]  # no-op repeats the last command
-        self._action = np.array([*np.clip(a[:3], -self.spec.max_delta, self.spec.max_delta), gripper])
+        delta = np.clip(a[:3], -self.spec.max_delta, self.spec.max_delta)
+        if self.goal_update_mode == "desired":  # from the previous goal, at most GOAL_LEAD_STEPS ahead
+            self.world.forward()
+            hand = self.world.data.site_xpos[self.panda.site].copy()
+            goal = hand if self._goal is None else self._goal
+            lead = GOAL_LEAD_STEPS * self.spec.max_delta
+            self._goal = hand + np.clip(goal + delta - hand, -lead, lead)
+            delta = self._goal - hand
+        self._action = np.array([*delta, gripper])
         self._new_goal = True
         self.world.step(self.substeps)
         return self.state()
@@ -480,13 +495,14 @@ class RobosuiteSimulation(MujocoSimulation):
     (``physint_backends.make("robosuite", scene, **options)``):
         robot_visual: ``"collision"`` (default) draws the Panda with its low-poly collision
             geoms; ``"full"`` draws robosuite's visual meshes (~10x slower to render).
-        goal_update_mode: robosuite's OSC goal update, ``"achieved"`` (default: a displacement
-            moves the goal from where the hand is) or ``"desired"`` (from the previous goal).
+        goal_update_mode: overrides the scene robot's ``goal_mode`` (see ``spec.Robot``):
+            ``"achieved"`` (a displacement moves the goal from where the hand is) or ``"desired"``
+            (from the previous goal, leading the hand by at most ``GOAL_LEAD_STEPS`` displacements).
     """
 
     backend = "robosuite"
 
-    def __init__(self, scene: Scene, robot_visual: str = "collision", goal_update_mode: str = "achieved"):
+    def __init__(self, scene: Scene, robot_visual: str = "collision", goal_update_mode: str | None = None):
         self.env: SceneEnv | None = None
         super().__init__(scene, robot_visual=robot_visual, goal_update_mode=goal_update_mode)
 
@@ -516,7 +532,8 @@ class RobosuiteSimulation(MujocoSimulation):
             world = MujocoWorld(model, data, body_ids, geom_label, geom_owner)
             robot = None
             if scene.robot is not None:
-                robot = RobosuiteRobot(world, env.robots[0], scene.robot, names, self.goal_update_mode)
+                robot = RobosuiteRobot(world, env.robots[0], scene.robot, names,
+                                       self.goal_update_mode or scene.robot.goal_mode)
         except BaseException:
             env.close()
             raise

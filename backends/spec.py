@@ -29,6 +29,8 @@ SHAPES = ("box", "cylinder", "sphere", "mesh")
 SIZE_ARITY = {"box": 3, "cylinder": 2, "sphere": 1, "mesh": 0}
 GRIPPER_OPEN, GRIPPER_NOOP, GRIPPER_CLOSE = -1, 0, 1
 ROBOT_PARTS = ("fingers", "palm", "any")
+GOAL_MODES = ("achieved", "desired")
+GOAL_LEAD_STEPS = 2  # in "desired" mode the goal leads the hand by at most this many max_delta per axis
 
 
 class SpecError(BadInput):
@@ -292,6 +294,13 @@ class Robot:
     Action (one control step of ``1 / control_hz`` s): ``(dx, dy, dz, gripper)`` with the end-
     effector displacement in metres, each component clipped to ``±max_delta``, and ``gripper``
     in {-1 open, 0 no-op, +1 close}.
+
+    ``goal_mode`` says what the displacement moves (robosuite's ``goal_update_mode``):
+    ``"achieved"`` puts the hand's goal at where the hand is plus the displacement (a proportional
+    step: with the OSC of MuJoCo and robosuite the hand covers about a fifth of it per step);
+    ``"desired"`` adds it to the previous goal, which never leads the hand by more than
+    ``GOAL_LEAD_STEPS`` displacements, so on every backend the hand follows a sequence of
+    displacements at their speed (what a learned end-effector velocity controller needs).
     """
 
     name: str = "panda"
@@ -302,6 +311,7 @@ class Robot:
     control_hz: float = 25.0
     max_delta: float = 0.05  # m per control step, per axis
     init_ee_pos: tuple[float, float, float] | None = None  # world; default: 0.2 m above the table centre
+    goal_mode: str = "achieved"  # "achieved" or "desired" (see above)
 
     def __post_init__(self) -> None:
         if self.name != "panda":
@@ -312,6 +322,8 @@ class Robot:
         self.table_rgba = _rgba(self.table_rgba, "robot table_rgba")
         self.control_hz = _positive(self.control_hz, "robot control_hz")
         self.max_delta = _positive(self.max_delta, "robot max_delta")
+        if self.goal_mode not in GOAL_MODES:
+            raise SpecError(f"robot goal_mode {self.goal_mode!r} is not known; allowed: {', '.join(GOAL_MODES)}")
         if self.init_ee_pos is None:
             self.init_ee_pos = (0.0, 0.0, self.table_height + 0.2)
         self.init_ee_pos = _finite_vector(self.init_ee_pos, 3, "robot init_ee_pos")  # type: ignore[assignment]

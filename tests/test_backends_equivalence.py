@@ -184,6 +184,25 @@ def test_panda_grasps_and_lifts_a_cube(backend):
         assert sim.robot.state().gripper_opening < 0.05
 
 
+def test_desired_goal_mode_follows_commanded_displacements(backend):
+    """goal_mode="desired": the hand moves by the commanded displacements on every backend (within 10 %);
+    "achieved" (the default) moves it by less: a proportional step towards hand + displacement."""
+    moved = {}
+    for mode in ("desired", "achieved"):
+        with pb.make(backend, Scene(robot=pb.RobotSpec(goal_mode=mode))) as sim:
+            start = sim.robot.state().ee_pos.copy()
+            for _ in range(12):
+                sim.robot.act([0.01, 0.0, -0.005, 0])
+            for _ in range(6):
+                state = sim.robot.act([0, 0, 0, 0])
+            moved[mode] = state.ee_pos - start
+    assert moved["desired"][0] == pytest.approx(0.12, rel=0.1) and moved["desired"][2] == pytest.approx(-0.06, rel=0.1)
+    assert abs(moved["desired"][1]) < 0.005
+    assert 0.0 < moved["achieved"][0] < 0.11
+    with pytest.raises(SpecError, match="goal_mode 'velocity' is not known"):
+        pb.RobotSpec(goal_mode="velocity")
+
+
 def test_bad_action_is_rejected_without_stepping(backend):
     with pb.make(backend, robot_scene(with_cube=False)) as sim:
         t = sim.time
