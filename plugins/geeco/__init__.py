@@ -1,0 +1,1 @@
+"""geeco: goal-conditioned end-to-end visuomotor control (thesis Chapter 6)."""

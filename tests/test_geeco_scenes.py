@@ -1,0 +1,114 @@
+"""GEECO's environments, scripted expert and dynamic images (thesis Chapter 6)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+import physint_backends as pb
+from physint_plugins.geeco import scenes as S
+from physint_plugins.geeco.dynamic import dynamic_image, rank_weights
+from physint_plugins.geeco.expert import Expert, on_target
+
+H = 100  # demonstration length (25 Hz, 4 s)
+
+
+# -- dynamic images (Eqs. 6.1, 6.2) ---------------------------------------------------------------
+
+def test_rank_weights_follow_eq_6_2():
+    assert np.allclose(rank_weights(2), [-0.5, 0.5])  # rho(I_t, I_T) is half the difference image
+    for h in (2, 4, 10):
+        w = rank_weights(h)
+        assert abs(w.sum()) < 1e-9  # a static sequence has no dynamics
+        assert w[0] < 0 < w[-1]  # the oldest frame subtracts, the newest adds (not monotonic in between)
+    # H = 4 by hand: alpha_t = 2(5 - t) - 5 (Harm_4 - Harm_{t-1})
+    harm = [0, 1, 1.5, 11 / 6, 25 / 12]
+    assert np.allclose(rank_weights(4), [2 * (5 - t) - 5 * (harm[4] - harm[t - 1]) for t in range(1, 5)])
+
+
+def test_dynamic_image_shows_where_things_moved_from_and_to():
+    frames = torch.zeros(1, 4, 3, 16, 16)
+    for t in range(4):  # a white square moving right by 3 px per frame
+        frames[0, t, :, 4:8, 2 + 3 * t:6 + 3 * t] = 1.0
+    rho = dynamic_image(frames)[0]
+    assert rho.shape == (3, 16, 16)
+    assert rho[:, 6, 12].mean() > 0 > rho[:, 6, 2].mean()  # bright where it ends, dark where it started
+    assert abs(float(rho.mean())) < 1e-5 and abs(float(rho.std()) - 1) < 1e-3  # normalised across channels
+    static = dynamic_image(frames[:, :1].repeat(1, 4, 1, 1, 1))
+    assert float(static.abs().max()) < 1e-5  # nothing moves: an empty dynamic image, not amplified noise
+
+
+# -- scenes -----------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("scene", S.SCENES)
+def test_start_states_keep_things_apart_and_the_object_away_from_its_target(scene):
+    rng = np.random.default_rng(1)
+    skill = "pickplace" if scene in ("nutoncone", "ballincup") else "push"
+    for k in range(10):
+        task = S.tasks(scene)[k % len(S.tasks(scene))]
+        ep = S.sample_episode(scene, skill, task, rng)
+        xy = ep.layout[:, :2]
+        gaps = [np.linalg.norm(xy[i] - xy[j]) for i in range(len(xy)) for j in range(i)]
+        assert not gaps or min(gaps) > 0.09
+        assert np.linalg.norm(ep.xy(ep.object) - ep.xy(ep.target)) >= 0.16
+        assert (scene == "clutter") == (len(ep.clutter) == S.CLUTTER_OBJECTS)
+    assert len(S.tasks("goal2cube2")) == 4 and len(S.tasks("goal1cube1")) == 1
+
+
+def test_goals_in_words():
+    assert S.parse_goal("red cube onto green pad", "goal2cube2") == (0, 1)
+    assert S.parse_goal("Yellow cube on the blue pad", "goal2cube2") == (1, 0)
+    assert S.parse_goal("ball into cup", "ballincup") == (0, 0)
+    with pytest.raises(ValueError, match="objects: red cube, yellow cube"):
+        S.parse_goal("purple cube onto green pad", "goal2cube2")
+    with pytest.raises(ValueError, match="targets: blue pad"):
+        S.parse_goal("red cube onto green pad", "goal1cube1")
+
+
+@pytest.mark.parametrize("scene", S.SCENES)
+def test_every_scene_builds_and_shows_its_objects(scene):
+    skill = "pickplace" if scene in ("nutoncone", "ballincup") else "push"
+    ep = S.sample_episode(scene, skill, (0, 0), np.random.default_rng(2))
+    with pb.make("mujoco", S.build_scene(ep, 64)) as sim:
+        sim.advance(0.3)
+        frame = sim.render("front", segmentation=True)
+        for name in S.items(scene):  # every object and target is in view
+            assert (frame.segmentation == sim.body_names.index(name)).sum() > 0, name
+            assert np.isfinite(sim.get_pose(name)[0]).all()
+        assert (frame.segmentation == -1).sum() > 0  # background, which BG:PRISMA replaces
+        video = S.replace_background(frame.rgb, frame.segmentation, step=3)
+        changed = (video != frame.rgb).any(axis=-1)
+        assert changed.any() and not changed[frame.segmentation != -1].any()
+
+
+# -- the scripted expert ---------------------------------------------------------------------------
+
+def run_expert(sim, ep: S.Episode) -> tuple[bool, bool]:
+    sim.reset(S.build_scene(ep, 32))
+    expert = Expert(ep)
+    for _ in range(H):
+        sim.robot.act(expert.act(sim))
+    return on_target(ep, sim), expert.done
+
+
+def test_expert_picks_and_places_each_goal2cube2_task_within_a_demonstration():
+    rng = np.random.default_rng(3)
+    episodes = [S.sample_episode("goal2cube2", "pickplace", task, rng) for task in S.tasks("goal2cube2")]
+    with pb.make("mujoco", S.build_scene(episodes[0], 32)) as sim:
+        results = [run_expert(sim, ep) for ep in episodes]
+    assert sum(ok and done for ok, done in results) >= 3, results  # placed, and the hand parked by step 100
+
+
+def test_a_cube_left_beside_its_pad_is_not_on_target():
+    ep = S.sample_episode("goal2cube2", "pickplace", (0, 1), np.random.default_rng(4))
+    with pb.make("mujoco", S.build_scene(ep, 32)) as sim:
+        sim.advance(0.2)
+        assert not on_target(ep, sim)
+        pad = ep.xy(ep.target)
+        sim.set_pose(ep.object, (pad[0], pad[1], S.TABLE_Z + 0.02 + 0.025 + 0.002))
+        sim.advance(0.5)
+        assert on_target(ep, sim)
+        sim.set_pose(ep.object, (pad[0] + 0.09, pad[1], S.TABLE_Z + 0.026))
+        sim.advance(0.5)
+        assert not on_target(ep, sim)
