@@ -112,3 +112,58 @@ def test_a_cube_left_beside_its_pad_is_not_on_target():
         sim.set_pose(ep.object, (pad[0] + 0.09, pad[1], S.TABLE_Z + 0.026))
         sim.advance(0.5)
         assert not on_target(ep, sim)
+
+
+# -- the controllers (Section 6.3, Appendices 6.A-6.C) ---------------------------------------------
+
+@pytest.mark.parametrize("variant", ["geeco-f", "geeco-d", "geeco-r", "e2evmc"])
+def test_a_chunk_answers_each_window_as_the_window_alone_would(variant):
+    from physint_plugins.geeco.model import Geeco
+
+    torch.manual_seed(0)
+    model = Geeco(variant, image_size=32, width=0.25).eval()
+    frames, joints, target = torch.rand(2, 7, 3, 32, 32), torch.randn(2, 7, 7), torch.rand(2, 3, 32, 32)
+    with torch.no_grad():
+        chunk = model(frames, joints, target)
+        assert chunk["dee"].shape == (2, 4, 3) and chunk["grip"].shape == (2, 4, 3)
+        for w in range(4):
+            alone = model(frames[:, w:w + 4], joints[:, w:w + 4], target)
+            for head in ("dee", "grip", "ee", "obj"):
+                assert torch.allclose(chunk[head][:, w], alone[head][:, 0], atol=1e-5), (head, w)
+    with pytest.raises(ValueError, match="at least 4 frames"):
+        model(frames[:, :3], joints[:, :3], target)
+
+
+def test_goal_conditioned_variants_read_the_task_from_the_target_image():
+    """Same observations, two targets (a square on the left or the right): the conditioned
+    controllers learn to move towards it (Eq. 6.3); the unconditioned E2EVMC cannot."""
+    from physint_plugins.geeco.model import Geeco, geeco_loss
+
+    def batch(n):
+        side = torch.randint(0, 2, (n,))
+        target = torch.zeros(n, 3, 32, 32)
+        for i, s in enumerate(side):
+            target[i, :, 12:20, (2 if s == 0 else 22):(10 if s == 0 else 30)] = 1.0
+        frames = torch.zeros(n, 4, 3, 32, 32) + 0.3
+        dee = torch.zeros(n, 1, 3)
+        dee[:, 0, 1] = side.float() * 2 - 1  # +y towards a square on the right
+        return frames, torch.zeros(n, 4, 7), target, {"dee": dee, "grip": side[:, None], "ee": torch.zeros(n, 1, 3),
+                                                      "obj": torch.zeros(n, 1, 3)}
+
+    errors = {}
+    for variant in ("geeco-d", "e2evmc"):
+        torch.manual_seed(0)
+        model = Geeco(variant, image_size=32, width=0.25)
+        opt = torch.optim.Adam(model.parameters(), lr=2e-3)
+        for _ in range(150):
+            frames, joints, target, truth = batch(16)
+            loss, _ = geeco_loss(model(frames, joints, target), truth)
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+        frames, joints, target, truth = batch(64)
+        with torch.no_grad():
+            out = model(frames, joints, target)
+        errors[variant] = float(((out["dee"] - truth["dee"]) ** 2).mean())
+    # answering the mean (0) scores 1/3: only the y component (+-1) of the three is non-zero
+    assert errors["geeco-d"] < 0.05 and errors["e2evmc"] > 0.25, errors

@@ -1,0 +1,137 @@
+"""GEECO and its ablations (thesis Section 6.3, Fig. 6.3.2; Appendices 6.A-6.C) and the loss of Eq. 6.3.
+
+Every variant reads an observation buffer of K = 4 (frame, joint angles) pairs and the target
+image I_T, and regresses the end-effector displacement u_dEE (3), gripper logits u_GRP over
+{open, no-op, close} (3) and the auxiliary positions q_EE and q_OBJ (3 each):
+
+* ``geeco-f`` (F): s_t = psi_OBS(I_t) + psi_DYN(rho(I_{t-K+1}..I_t)) + psi_DIFF(rho(I_t, I_T)) + x_t,
+  one LSTM step per window;
+* ``geeco-d`` (D): s_j = psi_OBS(I_j) + psi_DIFF(rho(I_j, I_T)) + x_j for each j in the buffer,
+  fed to the LSTM frame by frame (Appendix 6.B);
+* ``geeco-r`` (R): s_j = psi_OBS(I_j) + (psi_OBS(I_T) - psi_OBS(I_j)) + x_j, frame by frame;
+* ``e2evmc``: the unconditioned controller of James et al. (Appendix 6.C): s_j = psi_OBS(I_j) + x_j.
+
+(+ is concatenation along channels; x is tiled over the feature map.) The LSTM (128) starts
+from zeros for every window, in training and in control, so a window is judged on its own; its
+output goes through FC(128) + ReLU into four linear heads (Table 6.A.2). The encoders are
+Table 6.A.1's eight 3x3 convolutions (32, 48, 64, 128, 192, 256, 256, 256 filters, stride 1
+then 2, ReLU), weights not shared; ``width`` scales the filters for the CPU presets.
+
+``forward`` takes a chunk of T >= K consecutive frames and answers for each of its T - K + 1
+windows, so in training every frame is encoded once however many windows share it.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+from .dynamic import dynamic_image
+
+ENCODER_FILTERS = (32, 48, 64, 128, 192, 256, 256, 256)  # Table 6.A.1
+BUFFER = 4  # K
+HIDDEN = 128
+JOINTS = 7
+GRIPPER_CLASSES = 3  # open, no-op, close
+VARIANTS = ("geeco-f", "geeco-d", "geeco-r", "e2evmc")
+
+
+def encoder(width: float = 1.0) -> nn.Sequential:
+    layers: list[nn.Module] = []
+    channels = 3
+    for i, filters in enumerate(ENCODER_FILTERS):
+        out = max(4, int(round(filters * width)))
+        layers += [nn.Conv2d(channels, out, 3, stride=1 if i == 0 else 2, padding=1), nn.ReLU(inplace=True)]
+        channels = out
+    return nn.Sequential(*layers)
+
+
+def feature_shape(size: int, width: float) -> tuple[int, int]:
+    """(channels, side) of an encoder's output for ``size`` x ``size`` input."""
+    side = size
+    for i in range(1, len(ENCODER_FILTERS)):
+        side = (side + 1) // 2
+    return max(4, int(round(ENCODER_FILTERS[-1] * width))), side
+
+
+class Geeco(nn.Module):
+    def __init__(self, variant: str = "geeco-f", image_size: int = 64, width: float = 1.0, buffer: int = BUFFER):
+        super().__init__()
+        if variant not in VARIANTS:
+            raise ValueError(f"variant {variant!r} is not known; valid: {', '.join(VARIANTS)}")
+        self.variant, self.image_size, self.width, self.buffer = variant, image_size, width, buffer
+        self.obs = encoder(width)  # psi_OBS
+        self.dyn = encoder(width) if variant == "geeco-f" else None  # psi_DYN
+        self.diff = encoder(width) if variant in ("geeco-f", "geeco-d") else None  # psi_DIFF
+        channels, side = feature_shape(image_size, width)
+        maps = {"geeco-f": 3, "geeco-d": 2, "geeco-r": 2, "e2evmc": 1}[variant]
+        self.state_size = (maps * channels + JOINTS) * side * side
+        self.lstm = nn.LSTM(self.state_size, HIDDEN, batch_first=True)
+        self.fc = nn.Linear(HIDDEN, HIDDEN)
+        self.heads = nn.ModuleDict({"dee": nn.Linear(HIDDEN, 3), "grip": nn.Linear(HIDDEN, GRIPPER_CLASSES),
+                                    "ee": nn.Linear(HIDDEN, 3), "obj": nn.Linear(HIDDEN, 3)})
+
+    @property
+    def conditioned(self) -> bool:
+        return self.variant != "e2evmc"
+
+    def _encode(self, net: nn.Module, images: torch.Tensor) -> torch.Tensor:
+        """(N, 3, S, S) -> (N, C, s, s), channels-last for the CPU's fast convolutions."""
+        return net(images.contiguous(memory_format=torch.channels_last))
+
+    def _state(self, maps: list[torch.Tensor], joints: torch.Tensor) -> torch.Tensor:
+        """Concatenate feature maps (N, C, s, s) with the tiled joint angles (N, 7); flatten."""
+        side = maps[0].shape[-1]
+        tiled = joints[:, :, None, None].expand(-1, -1, side, side).to(maps[0].dtype)
+        return torch.cat([*maps, tiled], dim=1).flatten(1)
+
+    def forward(self, frames: torch.Tensor, joints: torch.Tensor, target: torch.Tensor | None = None
+                ) -> dict[str, torch.Tensor]:
+        """frames (B, T, 3, S, S) in [0, 1], oldest first; joints (B, T, 7); target (B, 3, S, S).
+
+        Returns each head for the W = T - K + 1 windows ending at frames K-1 .. T-1: (B, W, ...).
+        """
+        b, t = frames.shape[:2]
+        k = self.buffer
+        w = t - k + 1
+        if w < 1:
+            raise ValueError(f"need at least {k} frames, got {t}")
+        if self.conditioned and target is None:
+            raise ValueError(f"{self.variant} needs a target image")
+        flat = frames.flatten(0, 1)  # (B*T, 3, S, S)
+        if self.variant == "geeco-f":
+            last = frames[:, k - 1:].flatten(0, 1)  # the current frame I_t of each window
+            windows = frames.unfold(1, k, 1).permute(0, 1, 5, 2, 3, 4).flatten(0, 1)  # (B*W, K, 3, S, S)
+            tgt = target[:, None].expand(-1, w, -1, -1, -1).flatten(0, 1)
+            pair = torch.stack([last, tgt], dim=1)
+            maps = [self._encode(self.obs, last - 0.5), self._encode(self.dyn, dynamic_image(windows)),
+                    self._encode(self.diff, dynamic_image(pair))]
+            state = self._state(maps, joints[:, k - 1:].flatten(0, 1))[:, None]  # (B*W, 1, state)
+        else:
+            obs = self._encode(self.obs, flat - 0.5)
+            maps = [obs]
+            if self.variant == "geeco-d":
+                tgt = target[:, None].expand(-1, t, -1, -1, -1).flatten(0, 1)
+                maps.append(self._encode(self.diff, dynamic_image(torch.stack([flat, tgt], dim=1))))
+            elif self.variant == "geeco-r":
+                goal = self._encode(self.obs, target - 0.5)  # (B, C, s, s)
+                maps.append(goal.repeat_interleave(t, dim=0) - obs)
+            per_frame = self._state(maps, joints.flatten(0, 1)).view(b, t, -1)
+            state = per_frame.unfold(1, k, 1).permute(0, 1, 3, 2).flatten(0, 1)  # (B*W, K, state)
+        out, _ = self.lstm(state)  # zero initial state for every window
+        feature = F.relu(self.fc(out[:, -1]))
+        return {name: head(feature).view(b, w, -1) for name, head in self.heads.items()}
+
+
+def geeco_loss(out: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], aux_weight: float = 1.0
+               ) -> tuple[torch.Tensor, dict[str, float]]:
+    """Eq. 6.3: MSE(u_dEE) + CCE(u_GRP) + lambda (MSE(q_EE) + MSE(q_OBJ)), averaged over windows.
+
+    ``batch`` holds the scaled targets ``dee``, ``ee``, ``obj`` (B, W, 3) and ``grip`` (B, W) class ids.
+    """
+    dee = F.mse_loss(out["dee"].float(), batch["dee"])
+    grip = F.cross_entropy(out["grip"].float().flatten(0, 1), batch["grip"].flatten().long())
+    aux = F.mse_loss(out["ee"].float(), batch["ee"]) + F.mse_loss(out["obj"].float(), batch["obj"])
+    total = dee + grip + aux_weight * aux
+    return total, {"dee": float(dee.detach()), "grip": float(grip.detach()), "aux": float(aux.detach())}
