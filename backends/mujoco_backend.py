@@ -128,7 +128,7 @@ def contact_solref(timestep: float) -> list[float]:
 
 
 def _add_geom(spec: mujoco.MjSpec, body: mujoco.MjsBody, name: str, geom: Geom, *, mass: float | None,
-              density: float, friction: float, solref: list[float]) -> None:
+              density: float, friction: float, solref: list[float], collide: bool = True) -> None:
     """One scene geom: spec sizes (full lengths) become MuJoCo half sizes."""
     g = body.add_geom(name=name, pos=list(geom.pos), quat=list(geom.quat), rgba=list(geom.rgba))
     if geom.shape == "box":
@@ -152,6 +152,8 @@ def _add_geom(spec: mujoco.MjSpec, body: mujoco.MjsBody, name: str, geom: Geom, 
     g.friction = [friction, TORSION, ROLLING]
     g.condim = 3  # sliding friction (elliptic cones, see build_spec)
     g.solref = solref
+    if not collide:  # drawn only
+        g.contype = g.conaffinity = 0
     if geom.texture is not None:
         g.material = _texture_material(spec, name, geom.texture, geom.rgba, plane=False)
 
@@ -174,7 +176,7 @@ def _add_body(spec: mujoco.MjSpec, body: Body, solref: list[float]) -> str:
         else:
             mass = None
         _add_geom(spec, b, f"{name}/{i}", geom, mass=mass, density=body.density, friction=body.friction,
-                  solref=solref)
+                  solref=solref, collide=body.collide)
     return name
 
 

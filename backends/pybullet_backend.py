@@ -329,7 +329,14 @@ class PybulletSimulation(Simulation):
         p = self._p
         links: dict = {}
         chunks: list[list[Geom]] = []
-        if len(body.geoms) == 1:
+        if not body.collide:  # drawn only
+            col = -1
+            vis = p.createVisualShapeArray(**_stack_args([self._shape_args(g, "visual") for g in body.geoms[:MAX_VISUAL_SHAPES]],
+                                                         "visual"))
+            if len(body.geoms) > MAX_VISUAL_SHAPES:
+                raise SpecError(f"body {body.name!r}: the pybullet backend draws at most {MAX_VISUAL_SHAPES} geoms "
+                                f"of a body that does not collide, got {len(body.geoms)}")
+        elif len(body.geoms) == 1:
             col = p.createCollisionShape(**self._shape_args(body.geoms[0], "collision"))
             vis = p.createVisualShape(**self._shape_args(body.geoms[0], "visual"))
         else:

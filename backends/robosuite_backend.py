@@ -193,8 +193,9 @@ class SceneBodyObject(MujocoGeneratedObject):
                 self.asset.extend([tex, mat])
                 self.textures[tex.get("name")] = (geom.texture, False)
                 visual["material"] = mat.get("name")
-            obj.append(new_element("geom", name=f"g{i}", **shape, **self.get_collision_attrib_template(),
-                                   density=_density(body), friction=_friction(body.friction), solref=self.solref))
+            if body.collide:
+                obj.append(new_element("geom", name=f"g{i}", **shape, **self.get_collision_attrib_template(),
+                                       density=_density(body), friction=_friction(body.friction), solref=self.solref))
             obj.append(new_element("geom", name=f"g{i}_vis", **visual))
         if not body.static:
             obj.append(new_joint(name="joint0", type="free"))
@@ -223,7 +224,7 @@ def scene_object(name: str, body: Body, solref: list[float]):
     """
     geom = body.geoms[0]
     primitive = {"box": BoxObject, "cylinder": CylinderObject, "sphere": BallObject}.get(geom.shape)
-    if (len(body.geoms) > 1 or primitive is None or geom.texture is not None or any(geom.pos)
+    if (len(body.geoms) > 1 or primitive is None or geom.texture is not None or any(geom.pos) or not body.collide
             or geom.quat != (1.0, 0.0, 0.0, 0.0)):
         return SceneBodyObject(name, body, solref)
     return primitive(name=name, size=_half_size(geom), rgba=_floats(geom.rgba), density=_density(body),

@@ -24,11 +24,12 @@ def _quat_mul(a, b) -> tuple[float, float, float, float]:
 
 
 def pad(name: str, size=(0.1, 0.1), pos=(0.0, 0.0, 0.0), rgba=(0.2, 0.3, 0.9, 1.0), thickness: float = 0.002,
-        texture=None) -> Body:
-    """A flat target pad lying on the surface at ``pos`` (its top ``thickness`` above pos z)."""
+        texture=None, collide: bool = True) -> Body:
+    """A flat target pad lying on the surface at ``pos`` (its top ``thickness`` above pos z);
+    ``collide=False`` makes it a marking only (objects slide over it as over the surface)."""
     x, y, z = pos
     return Body(name, [Geom("box", (size[0], size[1], thickness), rgba=rgba, texture=texture)],
-                pos=(x, y, z + thickness / 2), static=True)
+                pos=(x, y, z + thickness / 2), static=True, collide=collide)
 
 
 def bin_(name: str, inner=(0.2, 0.15), height: float = 0.08, wall: float = 0.01, pos=(0.0, 0.0, 0.0),

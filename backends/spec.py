@@ -150,7 +150,8 @@ _SIZE_NAMES = {"box": "(x, y, z) edge lengths", "cylinder": "(radius, height)", 
 
 @dataclass
 class Body:
-    """A rigid body made of one or more geoms. ``static`` bodies never move (bins, pads, bowls)."""
+    """A rigid body made of one or more geoms. ``static`` bodies never move (bins, pads, bowls);
+    a body with ``collide=False`` is only drawn (a marking on the table): it must be static."""
 
     name: str
     geoms: list[Geom]
@@ -160,6 +161,7 @@ class Body:
     density: float = 1000.0  # kg/m^3
     friction: float = 0.8  # sliding friction coefficient
     static: bool = False
+    collide: bool = True
 
     def __post_init__(self) -> None:
         if not isinstance(self.name, str) or not self.name:
@@ -172,6 +174,8 @@ class Body:
             self.mass = _positive(self.mass, f"body {self.name!r} mass")
         self.density = _positive(self.density, f"body {self.name!r} density")
         self.friction = _positive(self.friction, f"body {self.name!r} friction")
+        if not self.collide and not self.static:
+            raise SpecError(f"body {self.name!r}: a body that does not collide must be static")
 
     @property
     def total_mass(self) -> float:

@@ -43,6 +43,25 @@ def test_cube_dropped_into_a_bin_stays_in_it_and_a_pad_is_touched(backend):
         assert sim.in_contact("block", "pad") and sim.get_pose("pad")[0][2] == pytest.approx(0.001)
 
 
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_a_pad_that_does_not_collide_is_drawn_and_slid_over(backend):
+    marking = pad("mark", size=(0.1, 0.1), pos=(0.15, 0.0, 0.0), thickness=0.003, collide=False)
+    cube = Body.box("cube", (0.04, 0.04, 0.04), pos=(0.06, 0.0, 0.02), friction=0.3)
+    scene = Scene(bodies=[marking, cube], cameras=[Camera("top", pos=(0.15, 0.0, 0.6), lookat=(0.15, 0.0, 0.0),
+                                                          up=(1, 0, 0), width=32, height=32)])
+    with pb.make(backend, scene) as sim:
+        sim.advance(0.1)
+        sim.set_velocity("cube", (1.2, 0.0, 0.0))
+        sim.advance(0.6)
+        x, _, z = sim.get_pose("cube")[0]
+        assert x > 0.11 and z == pytest.approx(0.02, abs=0.003)  # slid onto the marking, not stopped at its edge
+        assert sim.contacts("mark") == [] and "mark" not in sim.contacts("cube")
+        seg = sim.render("top", segmentation=True).segmentation
+        assert (seg == 0).sum() > 0  # the marking is drawn
+    with pytest.raises(pb.SpecError, match="does not collide must be static"):
+        Body.box("ghost", (0.1, 0.1, 0.1), collide=False)
+
+
 def test_camera_from_pose_matches_lookat():
     ref = Camera("a", pos=(1.0, 0.0, 0.5), lookat=(0.0, 0.0, 0.5))
     rot = ref.rotation()

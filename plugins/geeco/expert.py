@@ -24,7 +24,7 @@ SPEED = 0.03  # m per control step in free space (0.75 m/s at 25 Hz)
 SLOW = 0.015  # near objects
 PUSH_SPEED = 0.015
 PUSH_HOVER = 0.075  # the hand moves between strokes at this height
-PUSH_TOLERANCE = 0.025  # a stroke leaving the cube's centre further from the target's is followed by another
+PUSH_TOLERANCE = 0.03  # a stroke leaving the cube's centre further from the target's is followed by another
 PUSH_HEIGHT = 0.017  # the hand (between the fingertips) while pushing: low on the cube, so it slides, not tips
 HOVER = 0.13  # carrying height above the table
 HAND_TOLERANCE = 0.012  # a phase ends when the hand is this close to where it was sent
@@ -52,10 +52,11 @@ def on_target(ep: Episode, sim) -> bool:
     rel = p[:2] - t
     z = p[2] - TABLE_Z
     if tgt.endswith("_pad"):
-        from .scenes import PAD, PAD_THICKNESS
+        from .scenes import PAD
 
         inside = bool(np.all(np.abs(rel) <= PAD / 2))
-        resting = abs(z - (PAD_THICKNESS[ep.skill] + object_half_height(obj))) < 0.012
+        surface = target_top(tgt, ep.skill) if ep.skill == "pickplace" else 0.0  # pushing pads are markings
+        resting = abs(z - (surface + object_half_height(obj))) < 0.012
         return inside and resting
     if tgt == "cone":  # the nut is threaded over the cone, down near its base
         return bool(np.linalg.norm(rel) < 0.012 and z < CONE_HEIGHT * 0.6)
@@ -149,7 +150,9 @@ class Expert:
     def _plan_stroke(self, cube: np.ndarray, tgt: np.ndarray) -> None:
         """From behind the cube to where its centre reaches the target's."""
         direction = (tgt - cube) / max(np.linalg.norm(tgt - cube), 1e-9)
-        self.stroke = (push_start(cube, tgt), tgt - direction * (CUBE / 2 + 0.012))
+        # the stroke ends a little past where the fingers would leave the cube's centre on the target's:
+        # the hand lags its goal and the fingertips' faces lie up to 1 cm ahead of the hand's point
+        self.stroke = (push_start(cube, tgt), tgt - direction * (CUBE / 2 + 0.004))
         self.strokes += 1
 
     def _push(self, sim, at: np.ndarray) -> tuple[np.ndarray, int]:
@@ -171,7 +174,7 @@ class Expert:
         if self.phase == "above_start":
             return self._go(at, [start[0], start[1], TABLE_Z + PUSH_HOVER], SPEED, "down"), NOOP
         if self.phase == "down":
-            return self._go(at, [start[0], start[1], height], SPEED, "push", wait=0), NOOP
+            return self._go(at, [start[0], start[1], height], SPEED, "push"), NOOP
         if self.phase == "push":
             return self._go(at, [end[0], end[1], height], PUSH_SPEED, "check", wait=0), NOOP
         if self.phase == "check":

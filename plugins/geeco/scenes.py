@@ -11,8 +11,8 @@ A Panda stands at the edge of a table; one camera looks at the table from the fr
   video, BG:PRISMA), ``nutoncone`` (drop a hexagonal nut over a cone) and ``ballincup`` (drop a
   ball into a cup).
 
-For pushing the pads are flat (2 mm, "reduced to flat textures"); for pick-and-place they are
-2 cm platforms. An :class:`Episode` is everything needed to rebuild one start state exactly: the
+For pushing the pads are flat markings that nothing collides with ("reduced to flat textures");
+for pick-and-place they are 2 cm platforms. An :class:`Episode` is everything needed to rebuild one start state exactly: the
 scene, the skill, where each object and target stands (``layout``) and the task (which object
 onto which target).
 """
@@ -38,7 +38,7 @@ TABLE_Z = ROBOT.table_height  # the table top; all heights below are above it
 CUBE = 0.05  # cube edge (m)
 CUBE_FRICTION = 0.5  # slides when pushed low (at 1.0 pushed cubes tip and wedge the fingers more often)
 PAD = 0.12  # target pad side (m)
-PAD_THICKNESS = {"push": 0.002, "pickplace": 0.02}
+PAD_TOP = {"push": 0.001, "pickplace": 0.02}  # pad surface above the table: a marking for pushing, a platform to place on
 WORKSPACE_X = (-0.12, 0.18)  # where objects and targets start (table frame, m)
 WORKSPACE_Y = (-0.22, 0.22)
 REST_EE = (-0.22, 0.0, TABLE_Z + 0.32)  # where the expert parks the hand: out of the target image
@@ -210,7 +210,7 @@ def object_half_height(name: str) -> float:
 def target_top(name: str, skill: str) -> float:
     """Height of the surface a placed object rests on, above the table."""
     if name.endswith("_pad"):
-        return PAD_THICKNESS[skill]
+        return PAD_TOP[skill]
     return {"cone": CONE_HEIGHT * 0.55, "cup": 0.01}[name]
 
 
@@ -224,8 +224,9 @@ def build_scene(ep: Episode, resolution: int) -> Scene:
             bodies.append(Body.box(name, (CUBE, CUBE, CUBE), rgba=RGBA[colour], pos=(x, y, TABLE_Z + CUBE / 2),
                                    quat=(math.cos(yaw / 2), 0.0, 0.0, math.sin(yaw / 2)), mass=0.1, friction=CUBE_FRICTION))
         elif name.endswith("_pad"):
+            # pushing pads are markings: a cube slides over them (a 1 mm step would stop it)
             bodies.append(pad(name, size=(PAD, PAD), pos=(x, y, TABLE_Z), rgba=RGBA[colour],
-                              thickness=PAD_THICKNESS[ep.skill]))
+                              thickness=PAD_TOP[ep.skill], collide=ep.skill != "push"))
         elif name == "nut":
             bodies.append(_nut(name, (x, y, TABLE_Z + NUT_HEIGHT / 2), RGBA["red"]))
         elif name == "cone":
