@@ -6,8 +6,10 @@ method's verb and returns one JSON-serialisable result (paths, metrics, timings)
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import os
+import shutil
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -166,6 +168,17 @@ def ensure_dataset(method: Any, ctx: Context, data: Path | None) -> Path:
 
 # -- train / eval / deploy ----------------------------------------------------------------------
 
+@contextlib.contextmanager
+def _discarded_on_bad_input(run: Run | None):
+    """A run that a verb refused as bad input (before doing anything) is removed: its --out stays free."""
+    try:
+        yield
+    except BadInput:
+        if run is not None and not run.checkpoint("last").exists():
+            shutil.rmtree(run.path, ignore_errors=True)
+        raise
+
+
 def _wait_for_run(path: Path) -> Run:
     while not (path / "run.json").exists():
         time.sleep(0.5)
@@ -194,7 +207,8 @@ def run_train(opts: Options) -> dict[str, Any]:
     else:
         run = Run.create("train", ctx, configs.to_dict(ctx.config), opts.out)
     ctx = ctx.with_(run=run.path)
-    metrics = method.train(ctx)
+    with _discarded_on_bad_input(run if resume_run is None and world == 1 else None):
+        metrics = method.train(ctx)
     if rank == 0:
         run.finish(metrics)
     return {"verb": "train", "method": ctx.method, "backend": ctx.backend, "scene": ctx.scene, "preset": ctx.preset,
@@ -219,7 +233,8 @@ def _run_verb(verb: str, opts: Options) -> dict[str, Any]:
     run = Run.create(verb, ctx, configs.to_dict(ctx.config), opts.out)
     ctx = ctx.with_(run=run.path)
     t0 = time.perf_counter()
-    result = getattr(method, "evaluate" if verb == "eval" else "deploy")(ctx)
+    with _discarded_on_bad_input(run):
+        result = getattr(method, "evaluate" if verb == "eval" else "deploy")(ctx)
     run.finish(result)
     return {"verb": verb, "method": ctx.method, "backend": ctx.backend, "scene": ctx.scene, "preset": ctx.preset,
             "seed": ctx.seed, "run": str(run.path.resolve()), "source_run": str(source.path.resolve()),

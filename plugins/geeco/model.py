@@ -15,7 +15,8 @@ image I_T, and regresses the end-effector displacement u_dEE (3), gripper logits
 from zeros for every window, in training and in control, so a window is judged on its own; its
 output goes through FC(128) + ReLU into four linear heads (Table 6.A.2). The encoders are
 Table 6.A.1's eight 3x3 convolutions (32, 48, 64, 128, 192, 256, 256, 256 filters, stride 1
-then 2, ReLU), weights not shared; ``width`` scales the filters for the CPU presets.
+then 2, ReLU), weights not shared; ``width`` scales the filters for the CPU presets and ``norm``
+adds group normalisation after each convolution (not in the thesis; it speeds up learning).
 
 ``forward`` takes a chunk of T >= K consecutive frames and answers for each of its T - K + 1
 windows, so in training every frame is encoded once however many windows share it.
@@ -37,14 +38,40 @@ GRIPPER_CLASSES = 3  # open, no-op, close
 VARIANTS = ("geeco-f", "geeco-d", "geeco-r", "e2evmc")
 
 
-def encoder(width: float = 1.0) -> nn.Sequential:
-    layers: list[nn.Module] = []
-    channels = 3
-    for i, filters in enumerate(ENCODER_FILTERS):
-        out = max(4, int(round(filters * width)))
-        layers += [nn.Conv2d(channels, out, 3, stride=1 if i == 0 else 2, padding=1), nn.ReLU(inplace=True)]
-        channels = out
-    return nn.Sequential(*layers)
+class Encoder(nn.Module):
+    """Table 6.A.1's eight 3x3 convolutions (stride 1, then 2), ReLU after each.
+
+    Layers whose input is at most 2x2 run in fp32 even under bf16 autocast: in bf16 the weight
+    gradients of the two layers with 1x1 inputs came out NaN in the first training steps on this
+    project's CPUs (AMX, torch 2.13; a lone convolution of that shape did not reproduce it). They
+    are the cheapest layers of the encoder.
+    """
+
+    def __init__(self, width: float = 1.0, norm: bool = False):
+        super().__init__()
+        layers: list[nn.Module] = []
+        norms: list[nn.Module] = []
+        channels = 3
+        for i, filters in enumerate(ENCODER_FILTERS):
+            out = max(4, int(round(filters * width)))
+            layers.append(nn.Conv2d(channels, out, 3, stride=1 if i == 0 else 2, padding=1))
+            norms.append(nn.GroupNorm(min(8, out // 4), out) if norm else nn.Identity())
+            channels = out
+        self.convs = nn.ModuleList(layers)
+        self.norms = nn.ModuleList(norms)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        for conv, norm in zip(self.convs, self.norms):
+            if x.shape[-1] <= 2 and torch.is_autocast_enabled(x.device.type):
+                with torch.autocast(x.device.type, enabled=False):
+                    x = F.relu(norm(conv(x.float())))
+            else:
+                x = F.relu(norm(conv(x)))
+        return x
+
+
+def encoder(width: float = 1.0, norm: bool = False) -> Encoder:
+    return Encoder(width, norm)
 
 
 def feature_shape(size: int, width: float) -> tuple[int, int]:
@@ -56,14 +83,15 @@ def feature_shape(size: int, width: float) -> tuple[int, int]:
 
 
 class Geeco(nn.Module):
-    def __init__(self, variant: str = "geeco-f", image_size: int = 64, width: float = 1.0, buffer: int = BUFFER):
+    def __init__(self, variant: str = "geeco-f", image_size: int = 64, width: float = 1.0, buffer: int = BUFFER,
+                 norm: bool = False):
         super().__init__()
         if variant not in VARIANTS:
             raise ValueError(f"variant {variant!r} is not known; valid: {', '.join(VARIANTS)}")
         self.variant, self.image_size, self.width, self.buffer = variant, image_size, width, buffer
-        self.obs = encoder(width)  # psi_OBS
-        self.dyn = encoder(width) if variant == "geeco-f" else None  # psi_DYN
-        self.diff = encoder(width) if variant in ("geeco-f", "geeco-d") else None  # psi_DIFF
+        self.obs = encoder(width, norm)  # psi_OBS
+        self.dyn = encoder(width, norm) if variant == "geeco-f" else None  # psi_DYN
+        self.diff = encoder(width, norm) if variant in ("geeco-f", "geeco-d") else None  # psi_DIFF
         channels, side = feature_shape(image_size, width)
         maps = {"geeco-f": 3, "geeco-d": 2, "geeco-r": 2, "e2evmc": 1}[variant]
         self.state_size = (maps * channels + JOINTS) * side * side

@@ -149,12 +149,12 @@ def sample_episode(scene: str, skill: str, task: tuple[int, int], rng: np.random
         yaw = np.where([n.endswith("cube") for n in names], rng.uniform(-0.2, 0.2, len(names)), 0.0)
         ep = Episode(scene, skill, np.column_stack([xy, yaw]).astype(np.float32), task, seed=int(rng.integers(2**31)))
         if scene == "clutter":
-            ep.clutter = _sample_clutter(ep, rng)
+            ep.clutter = sample_clutter(ep, rng)
         return ep
     raise RuntimeError(f"could not lay out scene {scene!r} in {max_tries} tries")
 
 
-def _sample_clutter(ep: Episode, rng: np.random.Generator) -> list[tuple[str, float, float, float, int]]:
+def sample_clutter(ep: Episode, rng: np.random.Generator) -> list[tuple[str, float, float, float, int]]:
     """Distractors (FG:CLUTTER): spheres, cylinders and boxes away from the task's objects and path."""
     names = items(ep.scene)
     taken = [(ep.xy(n), _radius(n, ep.skill)) for n in names]

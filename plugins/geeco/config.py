@@ -1,0 +1,72 @@
+"""GEECO's config and its tiny / small / paper presets (thesis Chapter 6, Appendix 6.A).
+
+``paper`` is the thesis's setup: 4,000 demonstrations per skill at 256x256, split 2:1:1; batch
+32 windows, Adam at 1e-4 for ~300k gradient steps (40 epochs of the 2,000 training
+demonstrations' 100 windows each: 250k steps); 1,000 test episodes of 200 steps. ``small`` is
+sized for a 2-core CPU (64x64 frames, encoders at half width, windows batched in chunks that
+share their frames).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from physint_cli.config import field_
+
+
+@dataclass
+class DataConfig:
+    skill: str = field_("push", "push or pickplace")
+    demos: int = field_(800, "expert demonstrations over all splits, 2:1:1 train/val/test (thesis: 4,000)")
+    resolution: int = field_(64, "camera image side in pixels (thesis: 256)")
+    horizon: int = field_(100, "steps per demonstration, H (25 Hz: 4 s)")
+    per_shard: int = field_(20, "demonstrations per shard (work unit)")
+    max_attempts: int = field_(8, "start states tried per demonstration before giving up")
+
+
+@dataclass
+class TrainConfig:
+    model: str = field_("geeco-f", "geeco-f, geeco-d, geeco-r or e2evmc")
+    epochs: int = field_(12, "passes over the training windows")
+    batch_size: int = field_(16, "chunks per batch")
+    chunk: int = field_(8, "consecutive windows per chunk (they share frames: each is encoded once)")
+    lr: float = field_(5e-4, "Adam learning rate (thesis: 1e-4)")
+    aux_weight: float = field_(1.0, "lambda of Eq. 6.3: weight of the auxiliary position losses (thesis: 0 or 1)")
+    width: float = field_(0.5, "encoder filter multiplier (1.0: Table 6.A.1)")
+    norm: bool = field_(True, "group normalisation after each convolution (not in Table 6.A.1: the plain "
+                              "encoders learn the commands far slower on a CPU budget)")
+    val_episodes: int = field_(12, "closed-loop validation episodes after each epoch picking the best checkpoint "
+                                    "(0: validation loss instead)")
+    precision: str = field_("auto", "fp32, bf16, or auto (bf16 where the hardware has it natively)")
+
+
+@dataclass
+class EvalConfig:
+    episodes: int = field_(200, "test episodes (thesis: 1,000)")
+    steps: int = field_(200, "control steps per episode (thesis: 200, 8 s)")
+    per_unit: int = field_(10, "episodes per work unit")
+
+
+@dataclass
+class DeployConfig:
+    steps: int = field_(200, "control steps")
+    video: bool = field_(True, "write an MP4 of the camera view beside the target and the dynamic images")
+
+
+@dataclass
+class GeecoConfig:
+    data: DataConfig = field_(DataConfig(), "expert demonstrations (Section 6.4)")
+    train: TrainConfig = field_(TrainConfig(), "the controller (Section 6.3, Appendix 6.A)")
+    eval: EvalConfig = field_(EvalConfig(), "closed-loop evaluation (Section 6.4)")
+    deploy: DeployConfig = field_(DeployConfig(), "running a controller on a target image")
+
+
+PRESETS = {
+    "tiny": {"data.demos": 16, "data.resolution": 32, "data.per_shard": 8, "train.epochs": 2, "train.batch_size": 4,
+             "train.width": 0.25, "train.val_episodes": 1, "eval.episodes": 2, "eval.steps": 60, "eval.per_unit": 1,
+             "deploy.steps": 40},
+    "small": {},
+    "paper": {"data.demos": 4000, "data.resolution": 256, "data.per_shard": 25, "train.epochs": 40,
+              "train.batch_size": 32, "train.chunk": 1, "train.lr": 1e-4, "train.width": 1.0, "train.norm": False, "train.val_episodes": 50,
+              "eval.episodes": 1000},
+}

@@ -1,0 +1,128 @@
+"""Closed-loop control with a trained GEECO controller (thesis Sections 6.3 and 6.4).
+
+:class:`Policy` keeps the observation buffer of the last K (frame, joint angles) pairs, padded
+on the left with copies of the oldest at the start of an episode (Appendix 6.A), and turns the
+network's outputs back into robot commands. :func:`run_episode` runs one episode and scores it
+the thesis's way:
+
+* REACH: the robot touched the object to move at least once;
+* PICK: the object was held: the fingers touch it with the gripper closed and it is lifted at
+  least 2 cm off the table (the thesis's Fetch counted palm contact with closed fingers; the
+  Panda holds a cube between its fingers, not against its palm);
+* PUSH / PLACE: the object rests on its target at the end (200 steps).
+
+A non-finite command (a diverging model) ends the episode as a failure (``diverged``), so an
+evaluation always finishes.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import deque
+from typing import Any
+
+import numpy as np
+
+from . import scenes as S
+from .expert import Expert, on_target
+
+DEE_SCALE = 0.03  # network u_dEE is in units of the expert's free-space step (m)
+POS_SCALE = 0.1  # network positions are in decimetres from the table centre
+GRIP_COMMAND = (-1, 0, 1)  # class id -> gripper command (open, no-op, close)
+LIFTED = 0.02  # PICK: the object's bottom at least this far off the table
+
+
+def scale_positions(q: np.ndarray) -> np.ndarray:
+    return (np.asarray(q, dtype=np.float32) - np.array([0.0, 0.0, S.TABLE_Z], np.float32)) / POS_SCALE
+
+
+def unscale_positions(q: np.ndarray) -> np.ndarray:
+    return np.asarray(q, dtype=float) * POS_SCALE + np.array([0.0, 0.0, S.TABLE_Z])
+
+
+def to_tensor_frames(frames: np.ndarray):
+    """uint8 (..., S, S, 3) -> float (..., 3, S, S) in [0, 1]."""
+    import torch
+
+    t = torch.from_numpy(np.ascontiguousarray(frames)).float().div_(255.0)
+    return t.movedim(-1, -3)
+
+
+class Policy:
+    """A trained controller with its observation buffer."""
+
+    def __init__(self, model, device: str = "cpu"):
+        self.model = model.eval().to(device)
+        self.device = device
+        self.buffer: deque = deque(maxlen=model.buffer)
+        self.target = None
+        self.last: dict[str, Any] = {}
+
+    def reset(self, target_rgb: np.ndarray | None) -> None:
+        self.buffer.clear()
+        self.target = None if target_rgb is None else to_tensor_frames(target_rgb)[None].to(self.device)
+
+    def act(self, rgb: np.ndarray, joints: np.ndarray) -> np.ndarray:
+        """The next robot action ``(dx, dy, dz, gripper)``; NaN where the network diverged."""
+        import torch
+
+        if not self.buffer:  # episode start: pad with copies of the oldest frame (the robot is at rest)
+            self.buffer.extend([(rgb, joints)] * (self.buffer.maxlen - 1))
+        self.buffer.append((rgb, joints))
+        frames = to_tensor_frames(np.stack([f for f, _ in self.buffer]))[None].to(self.device)
+        x = torch.as_tensor(np.stack([j for _, j in self.buffer]), dtype=torch.float32)[None].to(self.device)
+        with torch.no_grad():
+            out = self.model(frames, x, self.target)
+        dee = out["dee"][0, -1].float().cpu().numpy() * DEE_SCALE
+        grip = GRIP_COMMAND[int(out["grip"][0, -1].argmax())]
+        self.last = {"ee": unscale_positions(out["ee"][0, -1].float().cpu().numpy()),
+                     "obj": unscale_positions(out["obj"][0, -1].float().cpu().numpy()), "frames": frames}
+        return np.array([*dee, grip], dtype=float)
+
+
+def observe(sim, step: int, prisma: bool) -> np.ndarray:
+    """The camera frame the controller sees (BG:PRISMA: with the background video)."""
+    frame = sim.render("front", segmentation=prisma)
+    return S.replace_background(frame.rgb, frame.segmentation, step) if prisma else frame.rgb
+
+
+def expert_target(sim, ep: S.Episode, resolution: int, horizon: int = 100) -> np.ndarray | None:
+    """The target image of ``ep`` on this backend: the expert's last frame (None if it failed)."""
+    sim.reset(S.build_scene(ep, resolution))
+    expert = Expert(ep)
+    for _ in range(horizon):
+        sim.robot.act(expert.act(sim))
+    if not (on_target(ep, sim) and expert.done):
+        return None
+    return observe(sim, horizon, ep.scene == "prisma")
+
+
+def run_episode(sim, ep: S.Episode, policy: Policy, target_rgb: np.ndarray | None, steps: int, resolution: int,
+                on_step=None) -> dict[str, Any]:
+    """One closed-loop episode from ``ep``'s start state; ``on_step(t, rgb, action, policy)`` sees each step."""
+    sim.reset(S.build_scene(ep, resolution))
+    policy.reset(target_rgb)
+    reach = pick = diverged = False
+    gripper_closed = False
+    t0 = time.perf_counter()
+    step = 0
+    for step in range(steps):
+        rgb = observe(sim, step, ep.scene == "prisma")
+        state = sim.robot.state()
+        action = policy.act(rgb, np.asarray(state.joints, dtype=np.float32))
+        if on_step is not None:
+            on_step(step, rgb, action, policy)
+        if not np.all(np.isfinite(action)):
+            diverged = True
+            break
+        state = sim.robot.act(action)
+        if action[3] != 0:
+            gripper_closed = action[3] > 0
+        reach = reach or sim.robot.touching(ep.object)
+        if not pick and gripper_closed and sim.robot.touching(ep.object, "fingers"):
+            bottom = sim.get_pose(ep.object)[0][2] - S.object_half_height(ep.object) - S.TABLE_Z
+            pick = bottom > LIFTED
+    seconds = time.perf_counter() - t0
+    success = (not diverged) and on_target(ep, sim)
+    return {"reach": bool(reach), "pick": bool(pick), "success": bool(success), "diverged": diverged,
+            "steps": step + 1, "seconds": seconds}

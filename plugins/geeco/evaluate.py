@@ -1,0 +1,149 @@
+"""Closed-loop evaluation of a GEECO controller (thesis Section 6.4, Tables 6.4.1, 6.4.2, 6.C.1).
+
+Episodes start from the test split's saved start states (the run's own scene) or from seeded
+start states (the transfer scenes of Table 6.4.2: ``--scene clutter|prisma|nutoncone|ballincup``),
+with their target images: the demonstrations' last frames when the backend and resolution are the
+dataset's, otherwise the expert's last frame on this backend (an episode whose expert fails
+there has no target and is left out, and counted). Each runs for ``eval.steps`` control steps;
+REACH, PICK and PUSH / PLACE are Bernoulli outcomes reported with their 95 % binomial
+(normal-approximation, as the thesis's) confidence intervals. The control rate counts the
+network, the simulation and the rendering (the thesis: about 20 Hz on a GPU).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from physint_cli.errors import BadInput
+from physint_cli.method import Context, Unit, unit_seed
+
+from . import scenes as S
+
+NAMES = {"push": {"reach": "REACH", "success": "PUSH"},
+         "pickplace": {"reach": "REACH", "pick": "PICK", "success": "PLACE"}}
+
+
+def ci95(successes: int, n: int) -> float:
+    """Half-width of the 95 % normal-approximation binomial confidence interval."""
+    if n == 0:
+        return float("nan")
+    p = successes / n
+    return 1.96 * math.sqrt(p * (1 - p) / n)
+
+
+def plan_episodes(ctx: Context, meta: dict[str, Any], count: int) -> list[dict[str, Any]]:
+    """Episode specs: start state, task, and where the target image comes from."""
+    skill = meta["skill"]
+    if ctx.scene in ("nutoncone", "ballincup") and skill != "pickplace":
+        raise BadInput(f"scene {ctx.scene} is a pick-and-place transfer task; this controller was trained to {skill}")
+    if ctx.scene == meta["scene"]:
+        from physint_cli.datasets import ShardedDataset
+
+        if ctx.data is None:
+            raise BadInput("this run's dataset is not known: pass --data DATASET (its test split holds the start states)")
+        test = ShardedDataset(ctx.data, "test", ["layout", "task", "seed"], method="geeco")
+        n = min(count, len(test))
+        stored = ctx.backend == meta["backend"]
+        return [{"index": i, "layout": test[i]["layout"].tolist(), "task": [int(v) for v in test[i]["task"]],
+                 "seed": int(test[i]["seed"]), "stored_target": stored} for i in range(n)]
+    if S.OBJECTS.get(ctx.scene) is None:
+        raise BadInput(f"unknown scene {ctx.scene!r}")
+    tasks = S.tasks(ctx.scene)
+    specs = []
+    for i in range(count):
+        rng = np.random.default_rng(unit_seed(ctx.seed, "eval", ctx.scene, i))
+        ep = S.sample_episode(ctx.scene, skill, tasks[i % len(tasks)], rng)
+        specs.append({"index": i, "layout": ep.layout.tolist(), "task": list(ep.task), "seed": ep.seed,
+                      "stored_target": False})
+    return specs
+
+
+def episode_of(spec: dict[str, Any], scene: str, skill: str) -> S.Episode:
+    ep = S.Episode(scene, skill, np.asarray(spec["layout"], dtype=np.float32), tuple(spec["task"]), spec["seed"])
+    if scene == "clutter":  # the distractors come from the episode's own seed
+        ep.clutter = S.sample_clutter(ep, np.random.default_rng(spec["seed"]))
+    return ep
+
+
+def eval_unit(ctx: Context, unit: Unit) -> list[dict[str, Any]]:
+    from .control import Policy, expert_target, run_episode
+    from .train import load_controller
+
+    model, meta = load_controller(ctx.source_run, ctx.device)
+    policy = Policy(model, ctx.device)
+    resolution = model.image_size
+    test = None
+    sim = None
+    out = []
+    try:
+        for spec in unit.params["episodes"]:
+            ep = episode_of(spec, ctx.scene, meta["skill"])
+            if sim is None:
+                sim = ctx.make_sim(S.build_scene(ep, resolution))
+            target = None
+            if model.conditioned:
+                if spec["stored_target"]:
+                    if test is None:
+                        from physint_cli.datasets import ShardedDataset
+
+                        test = ShardedDataset(ctx.data, "test", ["rgb"], method="geeco")
+                    target = test[spec["index"]]["rgb"][-1]
+                else:
+                    target = expert_target(sim, ep, resolution, meta.get("horizon", 100))
+                    if target is None:
+                        out.append({"index": spec["index"], "no_target": True})
+                        continue
+            result = run_episode(sim, ep, policy, target, ctx.config.eval.steps, resolution)
+            out.append({"index": spec["index"], "task": ep.goal_text(), **result})
+    finally:
+        if sim is not None:
+            sim.close()
+    return out
+
+
+def summarize(results: list[dict[str, Any]], skill: str) -> dict[str, Any]:
+    ran = [r for r in results if not r.get("no_target")]
+    n = len(ran)
+    rates: dict[str, Any] = {}
+    for key, label in NAMES[skill].items():
+        k = sum(bool(r[key]) for r in ran)
+        rates[label] = {"rate": k / n if n else float("nan"), "ci95": ci95(k, n), "successes": k}
+    steps = sum(r["steps"] for r in ran)
+    seconds = sum(r["seconds"] for r in ran)
+    per_task: dict[str, dict[str, float]] = {}
+    for r in ran:
+        per_task.setdefault(r["task"], []).append(r["success"])  # type: ignore[arg-type]
+    return {"episodes": n, "rates": rates, "diverged": sum(bool(r["diverged"]) for r in ran),
+            "no_target": len(results) - n, "control_hz": steps / seconds if seconds else float("nan"),
+            "success_by_task": {t: float(np.mean(v)) for t, v in sorted(per_task.items())}}  # type: ignore[arg-type]
+
+
+def evaluate(ctx: Context) -> dict[str, Any]:
+    from .train import load_controller
+
+    _, meta = load_controller(ctx.source_run)
+    cfg = ctx.config.eval
+    if cfg.episodes < 1 or cfg.steps < 1 or cfg.per_unit < 1:
+        raise BadInput("eval.episodes, eval.steps and eval.per_unit must be >= 1")
+    specs = plan_episodes(ctx, meta, cfg.episodes)
+    units = [Unit("test", i, len(chunk), ctx.seed, {"episodes": chunk})
+             for i, chunk in enumerate(specs[j:j + cfg.per_unit] for j in range(0, len(specs), cfg.per_unit))]
+    ctx.log(f"evaluating {meta['model']} ({meta['skill']}, trained on {meta['scene']} / {meta['backend']}) on "
+            f"{len(specs)} {ctx.scene} episodes on {ctx.backend}, {cfg.steps} steps each")
+    results = [r for part in ctx.map(eval_unit, units, description="episodes") for r in part]
+    summary = summarize(results, meta["skill"])
+    _save_table(ctx, results)
+    return {"model": meta["model"], "skill": meta["skill"], "trained_on": {"scene": meta["scene"],
+            "backend": meta["backend"]}, "scene": ctx.scene, "backend": ctx.backend, "steps": cfg.steps, **summary}
+
+
+def _save_table(ctx: Context, results: list[dict[str, Any]]) -> None:
+    import json
+
+    from physint_cli.runs import Run
+
+    path = Run(ctx.run).artifact("episodes.jsonl")
+    path.write_text("".join(json.dumps(r) + "\n" for r in results))

@@ -1,0 +1,210 @@
+"""Training a GEECO controller on expert demonstrations (thesis Eq. 6.3, Appendix 6.A).
+
+A training sample is a chunk of ``train.chunk`` consecutive windows of one demonstration: the
+K - 1 frames before its first window (copies of the first frame at the episode's start, as in
+control) and its own frames, the target image I_T = I_H, and per window the expert's commands and
+the hand's and object's positions. The network encodes each frame of the chunk once and answers
+every window (``Geeco.forward``). The best checkpoint is chosen by closed-loop task progress on
+validation episodes (``train.val_episodes``; the thesis chose by validation task success).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from physint_cli.errors import BadInput
+from physint_cli.method import Context
+
+from . import scenes as S
+from .control import DEE_SCALE, scale_positions
+from .model import BUFFER
+
+FIELDS = ["rgb", "joints", "ee", "obj", "dee", "grip", "layout", "task", "seed"]
+
+
+def build_model(name: str, image_size: int, width: float, norm: bool = False):
+    """A registered GEECO model (``register_models``)."""
+    from physint_cli.errors import unknown
+    from physint_cli.plugins import get_plugins
+
+    models = get_plugins().models_for("geeco")
+    if name not in models:
+        raise unknown("model for geeco", name, models)
+    kwargs = {"image_size": int(image_size), "width": float(width), "norm": bool(norm)}
+    return models[name].build(**kwargs), kwargs
+
+
+def load_split(root: Path, split: str) -> dict[str, np.ndarray]:
+    """A whole split of demonstrations in memory (small: ~1.2 MB per demonstration at 64 px)."""
+    from physint_cli.datasets import ShardedDataset
+
+    data = ShardedDataset(root, split, FIELDS, method="geeco")
+    parts = list(data.shard_arrays())
+    data.close()
+    return {k: np.concatenate([p[k] for p in parts]) for k in FIELDS}
+
+
+class Chunks:
+    """Demonstrations -> training chunks (a torch ``Dataset``); chunk ``c`` of demo ``d`` covers
+    the windows ending at steps ``c * L .. c * L + L - 1``."""
+
+    def __init__(self, demos: dict[str, np.ndarray], chunk: int, buffer: int = BUFFER):
+        self.d, self.chunk, self.buffer = demos, chunk, buffer
+        self.horizon = demos["rgb"].shape[1]
+        self.per_demo = self.horizon // chunk
+        self.pos = {k: scale_positions(demos[k]) for k in ("ee", "obj")}
+
+    def __len__(self) -> int:
+        return len(self.d["rgb"]) * self.per_demo
+
+    def __getitem__(self, index: int) -> dict[str, Any]:
+        import torch
+
+        demo, c = divmod(int(index), self.per_demo)
+        first = c * self.chunk
+        frames = np.clip(np.arange(first - self.buffer + 1, first + self.chunk), 0, None)  # left padding
+        windows = slice(first, first + self.chunk)
+        return {"frames": torch.from_numpy(self.d["rgb"][demo, frames]),
+                "joints": torch.from_numpy(self.d["joints"][demo, frames]),
+                "target": torch.from_numpy(self.d["rgb"][demo, -1]),
+                "dee": torch.from_numpy(self.d["dee"][demo, windows] / DEE_SCALE),
+                "grip": torch.from_numpy(self.d["grip"][demo, windows].astype(np.int64)),
+                "ee": torch.from_numpy(self.pos["ee"][demo, windows]),
+                "obj": torch.from_numpy(self.pos["obj"][demo, windows])}
+
+
+def to_float_frames(batch: dict[str, Any]) -> dict[str, Any]:
+    """uint8 (B, T, S, S, 3) frames and (B, S, S, 3) targets -> float (.., 3, S, S) in [0, 1]."""
+    out = dict(batch)
+    out["frames"] = batch["frames"].float().div_(255.0).movedim(-1, -3)
+    out["target"] = batch["target"].float().div_(255.0).movedim(-1, -3)
+    return out
+
+
+def episodes_of(demos: dict[str, np.ndarray], scene: str, skill: str) -> list[S.Episode]:
+    return [S.Episode(scene, skill, demos["layout"][i], tuple(int(v) for v in demos["task"][i]), int(demos["seed"][i]))
+            for i in range(len(demos["layout"]))]
+
+
+class ClosedLoopProgress:
+    """Validation metric: mean task progress over validation episodes run with the network
+    (push: (REACH + PUSH) / 2; pick-and-place: (REACH + PICK + PLACE) / 3)."""
+
+    def __init__(self, ctx: Context, demos: dict[str, np.ndarray], skill: str, episodes: int, steps: int):
+        self.ctx, self.skill, self.steps = ctx, skill, steps
+        self.episodes = episodes_of(demos, ctx.scene, skill)[:episodes]
+        self.targets = demos["rgb"][:episodes, -1]
+        self.resolution = demos["rgb"].shape[2]
+        self.sim = None
+
+    def __call__(self, model, loader) -> float:
+        from .control import Policy, run_episode
+
+        policy = Policy(model)
+        scores = []
+        for ep, target in zip(self.episodes, self.targets):
+            if self.sim is None:
+                self.sim = self.ctx.make_sim(S.build_scene(ep, self.resolution))
+            r = run_episode(self.sim, ep, policy, target if model.conditioned else None, self.steps, self.resolution)
+            parts = [r["reach"], r["success"]] if self.skill == "push" else [r["reach"], r["pick"], r["success"]]
+            scores.append(float(np.mean(parts)))
+        model.train()
+        return float(np.mean(scores))
+
+
+class ValidationLoss:
+    """Validation metric when ``train.val_episodes`` is 0: minus the loss of Eq. 6.3."""
+
+    def __init__(self, aux_weight: float):
+        self.aux_weight = aux_weight
+
+    def __call__(self, model, loader) -> float:
+        import torch
+
+        from .model import geeco_loss
+
+        total, n = 0.0, 0
+        with torch.no_grad():
+            for batch in loader:
+                batch = to_float_frames(batch)
+                loss, _ = geeco_loss(model(batch["frames"], batch["joints"], batch["target"]), batch, self.aux_weight)
+                total += float(loss) * len(batch["frames"])
+                n += len(batch["frames"])
+        return -total / max(n, 1)
+
+
+def train(ctx: Context) -> dict[str, Any]:
+    from physint_cli.datasets import read_manifest
+    from physint_cli.runs import Run
+    from physint_cli.training import fit
+
+    from .model import geeco_loss
+
+    cfg = ctx.config.train
+    manifest = read_manifest(ctx.data, "geeco")
+    data_cfg = manifest["config"].get("data", manifest["config"])
+    skill, scene = data_cfg["skill"], manifest["scene"]
+    ctx = ctx.with_(scene=scene)
+    name = ctx.options.get("model", cfg.model)
+    model, kwargs = build_model(name, data_cfg["resolution"], cfg.width, cfg.norm)
+    if cfg.chunk < 1 or cfg.chunk > data_cfg["horizon"]:
+        raise BadInput(f"train.chunk must be in [1, {data_cfg['horizon']}], got {cfg.chunk}")
+    train_demos, val_demos = load_split(ctx.data, "train"), load_split(ctx.data, "val")
+    train_set, val_set = Chunks(train_demos, cfg.chunk), Chunks(val_demos, cfg.chunk)
+    ctx.log(f"training {name} on {len(train_demos['rgb'])} {skill} demonstrations of {scene} "
+            f"({len(train_set)} chunks of {cfg.chunk} windows), validating on {len(val_demos['rgb'])}")
+
+    def loss_fn(net, batch):
+        loss, _ = geeco_loss(net(batch["frames"], batch["joints"], batch["target"]), batch, cfg.aux_weight)  # Eq. 6.3
+        return loss
+
+    if cfg.val_episodes > 0:
+        metric = ClosedLoopProgress(ctx, val_demos, skill, cfg.val_episodes, ctx.config.eval.steps)
+    else:
+        metric = ValidationLoss(cfg.aux_weight)
+    result = fit(model, train_set, val_set, run=Run(ctx.run), epochs=cfg.epochs, batch_size=cfg.batch_size,
+                 lr=cfg.lr, loss_fn=loss_fn, metric_fn=metric, device=ctx.device, seed=ctx.seed,
+                 resume=bool(ctx.options.get("resume")), log=ctx.log, higher_is_better=True,
+                 precision=cfg.precision, batch_transform=to_float_frames,
+                 meta={"method": "geeco", "model": name, "kwargs": kwargs, "scene": scene, "skill": skill,
+                       "backend": manifest["backend"], "horizon": data_cfg["horizon"]})
+    _plot_curves(Run(ctx.run), result.history, cfg.val_episodes > 0)
+    return {"model": name, "skill": skill, "scene": scene, "epochs": result.epochs,
+            "val_metric": result.best_metric, "val_metric_is": "closed-loop task progress" if cfg.val_episodes
+            else "minus validation loss (Eq. 6.3)", "train_demos": len(train_demos["rgb"]),
+            "val_demos": len(val_demos["rgb"])}
+
+
+def load_controller(run_dir, device: str = "cpu"):
+    """The best checkpoint of a trained GEECO run, in eval mode, and its meta."""
+    from physint_cli.plugins import get_plugins
+    from physint_cli.runs import Run
+    from physint_cli.training import load_checkpoint
+
+    path = Run(Path(run_dir)).checkpoint("best")
+    state = load_checkpoint(path, device)
+    meta = state.get("meta", {})
+    models = get_plugins().models_for("geeco")
+    if meta.get("method") != "geeco" or meta.get("model") not in models:
+        raise BadInput(f"checkpoint {path} is not a GEECO controller (method {meta.get('method')!r}, "
+                       f"model {meta.get('model')!r})")
+    model = models[meta["model"]].build(**meta["kwargs"])
+    model.load_state_dict(state["model"])
+    return model.to(device).eval(), meta
+
+
+def _plot_curves(run, history, closed_loop: bool) -> None:
+    from physint_cli.artifacts import save_plot
+
+    def draw(ax):
+        epochs = [h["epoch"] for h in history]
+        ax.plot(epochs, [h["train_loss"] for h in history], label="train loss (Eq. 6.3)")
+        ax.plot(epochs, [h["val_metric"] for h in history],
+                label="val task progress (closed loop)" if closed_loop else "val: minus loss")
+        ax.set_xlabel("epoch")
+        ax.legend()
+
+    save_plot(run.artifact("training_curves.png"), draw)

@@ -1,0 +1,186 @@
+"""The geeco method through the CLI: demonstrations, training, closed-loop evaluation, deployment."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from conftest import call
+
+from physint_cli.datasets import ShardedDataset
+from physint_plugins.geeco import scenes as S
+from physint_plugins.geeco.expert import SPEED
+
+
+@pytest.fixture(scope="module")
+def tiny_pipeline(tmp_path_factory):
+    out = tmp_path_factory.mktemp("geeco") / "pipe"
+    code, stdout, err = call("pipeline", "geeco", "--preset", "tiny", "--backend", "mujoco", "--out", str(out), "--json")
+    assert code == 0, err
+    return out, json.loads(stdout)
+
+
+def test_demonstrations_are_balanced_successful_and_end_on_their_target_image(tiny_pipeline):
+    out, result = tiny_pipeline
+    stats = result["dataset"]["stats"]
+    assert stats["demos"] == 16 and 0 < stats["expert_success_rate"] <= 1
+    train = ShardedDataset(out / "dataset", "train")
+    assert len(train) == 8 and len(ShardedDataset(out / "dataset", "test")) == 4  # 2:1:1
+    tasks = [tuple(t) for t in train.column("task").tolist()]
+    assert sorted(set(tasks)) == S.tasks("goal2cube2") and all(tasks.count(t) == 2 for t in set(tasks))
+    for i in range(len(train)):
+        r = train[i]
+        assert r["rgb"].shape == (100, 32, 32, 3) and r["joints"].shape == (100, 7)
+        assert np.abs(r["dee"]).max() <= SPEED + 1e-6 and set(np.unique(r["grip"])) <= {0, 1, 2}
+        ep = S.Episode("goal2cube2", "push", r["layout"], tuple(int(v) for v in r["task"]))
+        # the object moved from its start onto its target; the hand is parked at the end
+        assert np.linalg.norm(r["obj"][0, :2] - ep.xy(ep.object)) < 1e-3
+        assert np.all(np.abs(r["obj"][-1, :2] - ep.xy(ep.target)) <= S.PAD / 2)
+        assert np.linalg.norm(r["ee"][-1] - np.asarray(S.REST_EE)) < 0.03
+        assert np.abs(r["rgb"][-1].astype(int) - r["rgb"][-2].astype(int)).mean() < 2  # a still last frame
+
+
+def test_pipeline_reports_thesis_metrics_and_leaves_things_to_look_at(tiny_pipeline):
+    out, result = tiny_pipeline
+    ev = result["eval"]["metrics"]
+    assert ev["episodes"] == 2 and set(ev["rates"]) == {"REACH", "PUSH"}
+    for rate in ev["rates"].values():
+        assert 0 <= rate["rate"] <= 1 and rate["ci95"] >= 0
+    assert ev["control_hz"] > 0 and ev["diverged"] == 0
+    assert len((out / "eval" / "artifacts" / "episodes.jsonl").read_text().splitlines()) == 2
+    de = result["deploy"]["metrics"]
+    assert de["goal"] == de["task"] and de["steps"] == 40
+    for name in ("target.png", "episode.mp4", "deploy.rrd"):
+        assert (out / "deploy" / "artifacts" / name).stat().st_size > 0, name
+    assert (out / "train" / "artifacts" / "training_curves.png").exists()
+
+
+def test_a_goal_in_words_and_the_target_image_it_made_give_the_same_start(tiny_pipeline, tmp_path):
+    out, _ = tiny_pipeline
+    run = str(out / "train")
+    code, stdout, err = call("deploy", "geeco", "--run", run, "--target", "red cube onto blue pad", "--seed", "3",
+                             "--out", str(tmp_path / "a"), "--json")
+    assert code == 0, err
+    assert json.loads(stdout)["metrics"]["task"] == "red cube onto blue pad"
+    image = tmp_path / "a" / "artifacts" / "target.png"
+    code, stdout, err = call("deploy", "geeco", "--run", run, "--target", str(image), "--seed", "3",
+                             "--out", str(tmp_path / "b"), "--json")
+    assert code == 0, err
+    import imageio.v3 as iio
+
+    assert np.array_equal(iio.imread(tmp_path / "b" / "artifacts" / "target.png"), iio.imread(image))
+
+
+@pytest.mark.parametrize("args, message", [
+    (["dataset", "geeco", "--scene", "clutter"], "for evaluation only"),
+    (["dataset", "geeco", "--set", "data.skill=fly"], "data.skill must be one of push, pickplace"),
+    (["dataset", "geeco", "--set", "data.demos=2"], "data.demos must be >= 4"),
+    (["train", "geeco", "--model", "geeco-x"], "geeco-x"),
+])
+def test_bad_input_exits_2_with_one_line(args, message):
+    code, _, err = call(*args, "--preset", "tiny")
+    assert code == 2 and message in err and len(err.strip().splitlines()) == 1, err
+
+
+def test_bad_targets_exit_2(tiny_pipeline, tmp_path):
+    out, _ = tiny_pipeline
+    run = str(out / "train")
+    not_image = tmp_path / "notes.png"
+    not_image.write_text("not an image")
+    big = tmp_path / "big.png"
+    import imageio.v3 as iio
+
+    iio.imwrite(big, np.zeros((64, 64, 3), np.uint8))
+    for target, message in (("purple cube onto green pad", "objects: red cube, yellow cube"),
+                            (str(not_image), "not an image"), (str(big), "sees 32x32 images, got 64x64"),
+                            (str(tmp_path / "missing.png"), "no such file")):
+        code, _, err = call("deploy", "geeco", "--run", run, "--target", target, "--out", str(tmp_path / "d"))
+        assert code == 2 and message in err, (target, err)
+
+
+def test_a_run_of_another_method_is_refused(tmp_path):
+    code, _, err = call("train", "stability", "--preset", "tiny", "--scene", "cubes", "--out", str(tmp_path / "st"),
+                        "--set", "train.epochs=1")
+    assert code == 0, err
+    code, _, err = call("eval", "geeco", "--run", str(tmp_path / "st"))
+    assert code == 2 and "stability" in err
+
+
+def test_a_diverging_controller_fails_its_episode_without_stopping_the_evaluation():
+    from physint_plugins.geeco.control import run_episode
+
+    import physint_backends as pb
+
+    class Diverging:
+        calls = 0
+
+        def reset(self, target):
+            pass
+
+        def act(self, rgb, joints):
+            self.calls += 1
+            return np.array([0.01, 0.0, 0.0, 0.0]) if self.calls < 5 else np.array([np.nan, 0.0, 0.0, 0.0])
+
+    ep = S.sample_episode("goal2cube2", "push", (0, 0), np.random.default_rng(0))
+    with pb.make("mujoco", S.build_scene(ep, 32)) as sim:
+        result = run_episode(sim, ep, Diverging(), None, steps=50, resolution=32)
+        assert result["diverged"] and not result["success"] and result["steps"] == 5
+        again = run_episode(sim, ep, Diverging(), None, steps=3, resolution=32)  # the next episode runs
+        assert again["steps"] == 3 and not again["diverged"]
+
+
+def test_behaviour_cloning_on_demonstrations_beats_the_mean_command(tiny_pipeline):
+    """Trained on the tiny demonstrations (Eq. 6.3), GEECO-D predicts the expert's commands on its
+    training windows far better than always answering the average command."""
+    from physint_cli.training import seed_everything
+    from physint_plugins.geeco.model import Geeco, geeco_loss
+    from physint_plugins.geeco.train import Chunks, load_split, to_float_frames
+
+    out, _ = tiny_pipeline
+    demos = load_split(out / "dataset", "train")
+    chunks = Chunks(demos, 10)
+    seed_everything(0)
+    model = Geeco("geeco-d", image_size=32, width=0.25, norm=True)
+    opt = torch.optim.Adam(model.parameters(), lr=2e-3)
+    loader = torch.utils.data.DataLoader(chunks, batch_size=8, shuffle=True)
+    for _ in range(30):
+        for batch in loader:
+            batch = to_float_frames(batch)
+            loss, _ = geeco_loss(model(batch["frames"], batch["joints"], batch["target"]), batch)
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+    batch = to_float_frames(torch.utils.data.default_collate([chunks[i] for i in range(len(chunks))]))
+    with torch.no_grad():
+        pred = model(batch["frames"], batch["joints"], batch["target"])
+    mse = float(((pred["dee"] - batch["dee"]) ** 2).mean())
+    mean_mse = float(((batch["dee"] - batch["dee"].mean(dim=(0, 1))) ** 2).mean())
+    grip_acc = float((pred["grip"].argmax(-1) == batch["grip"]).float().mean())
+    majority = float(np.bincount(batch["grip"].flatten().numpy()).max() / batch["grip"].numel())
+    assert mse < 0.8 * mean_mse, (mse, mean_mse)  # seen: 0.073 vs 0.110
+    assert grip_acc > majority + 0.02, (grip_acc, majority)  # seen: 0.999 vs 0.960 (no-op most of the time)
+
+
+def test_evaluation_on_another_backend_and_on_a_transfer_scene(tiny_pipeline, tmp_path):
+    out, _ = tiny_pipeline
+    run = str(out / "train")
+    for args in (["--backend", "pybullet"], ["--scene", "prisma"], ["--scene", "clutter"]):
+        code, stdout, err = call("eval", "geeco", "--run", run, *args, "--set", "eval.episodes=1", "--set",
+                                 "eval.steps=10", "--out", str(tmp_path / "_".join(args).strip("-")), "--json")
+        assert code == 0, (args, err)
+        metrics = json.loads(stdout)["metrics"]
+        # the target image comes from the expert on that backend / in that scene
+        assert metrics["episodes"] + metrics["no_target"] == 1 and metrics["trained_on"]["backend"] == "mujoco"
+    code, _, err = call("eval", "geeco", "--run", run, "--scene", "nutoncone", "--out", str(tmp_path / "nut"))
+    assert code == 2 and "pick-and-place transfer task" in err
+
+
+def test_tiny_pipeline_on_robosuite(tmp_path):
+    code, stdout, err = call("pipeline", "geeco", "--preset", "tiny", "--backend", "robosuite", "--out",
+                             str(tmp_path / "rs"), "--json")
+    assert code == 0, err
+    result = json.loads(stdout)
+    assert result["eval"]["metrics"]["backend"] == "robosuite" and result["deploy"]["metrics"]["steps"] == 40
