@@ -21,7 +21,7 @@ class DataConfig:
     resolution: int = field_(64, "camera image side in pixels (thesis: 256)")
     horizon: int = field_(100, "steps per demonstration, H (25 Hz: 4 s)")
     per_shard: int = field_(20, "demonstrations per shard (work unit)")
-    max_attempts: int = field_(8, "start states tried per demonstration before giving up")
+    max_attempts: int = field_(30, "start states tried per demonstration before giving up")
 
 
 @dataclass

@@ -172,7 +172,7 @@ class Expert:
         if self.phase == "behind":
             return self._go(at, [at[0], at[1], TABLE_Z + PUSH_HOVER], SPEED, "above_start"), NOOP
         if self.phase == "above_start":
-            return self._go(at, [start[0], start[1], TABLE_Z + PUSH_HOVER], SPEED, "down"), NOOP
+            return self._go(at, [start[0], start[1], TABLE_Z + PUSH_HOVER], SPEED, "down", wait=0), NOOP
         if self.phase == "down":
             return self._go(at, [start[0], start[1], height], SPEED, "push"), NOOP
         if self.phase == "push":
