@@ -27,11 +27,11 @@ import argparse
 import json
 import os
 import platform
-import shutil
-import subprocess
 import sys
-import time
 from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from commands import Steps, minutes, pct, print_table  # noqa: E402
 
 # thesis Table 3.3 (simulated row), Table 3.4 (first row) and the issue's small-preset goals
 THESIS = {
@@ -41,90 +41,28 @@ THESIS = {
 GOALS = {"dataset_min": 10.0, "train_min": 30.0, "acc_ccs": 0.85, "violation_area": 0.799}
 
 
-def physint() -> list[str]:
-    exe = shutil.which("physint", path=str(Path(sys.executable).parent)) or shutil.which("physint")
-    return [exe] if exe else [sys.executable, "-m", "physint_cli"]
-
-
-class Bench:
-    def __init__(self, home: Path, preset: str, workers: int, backend: str):
-        self.home, self.preset, self.workers, self.backend = home, preset, workers, backend
-        self.home.mkdir(parents=True, exist_ok=True)
-        self.times_file = home / "benchmark_times.json"
-        self.times = json.loads(self.times_file.read_text()) if self.times_file.exists() else {}
-
-    def run(self, key: str, done: bool, args: list[str]) -> float | None:
-        """Run ``physint ARGS`` unless ``done``; remember and return its wall time (s)."""
-        if done:
-            return self.times.get(key)
-        exe = physint()
-        cmd = exe + args + ["--preset", self.preset, "--quiet"]
-        print("$ " + " ".join(["physint"] + cmd[len(exe):]), flush=True)
-        env = dict(os.environ, PHYSINT_HOME=str(self.home))
-        t0 = time.perf_counter()
-        rc = subprocess.run(cmd, env=env, stdout=subprocess.DEVNULL).returncode
-        seconds = time.perf_counter() - t0
-        if rc != 0:
-            raise SystemExit(f"benchmark step {key!r} failed (exit {rc}): {' '.join(cmd)}")
-        self.times[key] = seconds
-        self.times_file.write_text(json.dumps(self.times, indent=2))
-        return seconds
-
-    def finished_run(self, out: Path) -> bool:
-        """Whether ``out`` holds a finished eval/deploy run; an interrupted one is removed (they restart)."""
-        if (out / "metrics.json").exists():
-            return True
-        shutil.rmtree(out, ignore_errors=True)
-        return False
-
-    def dataset(self, scene: str, backend: str | None = None) -> Path:
+class Bench(Steps):
+    def dataset(self, scene: str, backend: str | None = None) -> Path:  # type: ignore[override]
         backend = backend or self.backend
-        out = self.home / f"data-{scene}-{backend}"  # an interrupted generation resumes its shards
-        self.run(f"dataset-{scene}-{backend}", _complete(out),
-                 ["dataset", "stability", "--scene", scene, "--backend", backend, "--workers", str(self.workers),
-                  "--out", str(out)])
-        return out
+        return super().dataset(f"dataset-{scene}-{backend}", self.home / f"data-{scene}-{backend}",
+                               ["stability", "--scene", scene, "--backend", backend])
 
-    def train(self, scene: str, data: Path, backend: str | None = None) -> Path:
+    def train(self, scene: str, data: Path, backend: str | None = None) -> Path:  # type: ignore[override]
         backend = backend or self.backend
-        out = self.home / f"train-{scene}-{backend}"
-        resume = ["--resume"] if (out / "run.json").exists() else []  # an interrupted training goes on
-        self.run(f"train-{scene}-{backend}", (out / "metrics.json").exists(),
-                 ["train", "stability", "--data", str(data), "--backend", backend, "--out", str(out), *resume])
-        return out
+        return super().train(f"train-{scene}-{backend}", self.home / f"train-{scene}-{backend}",
+                             ["stability", "--data", str(data), "--backend", backend])
 
     def eval(self, name: str, run: Path, backend: str | None = None, *sets: str) -> dict:
-        out = self.home / f"eval-{name}"
         extra = [a for s in sets for a in ("--set", s)]
-        self.run(f"eval-{name}", self.finished_run(out),
-                 ["eval", "stability", "--run", str(run), "--backend", backend or self.backend,
-                  "--workers", str(self.workers), "--out", str(out), *extra])
-        return _metrics(out)
+        return self.verb(f"eval-{name}", self.home / f"eval-{name}",
+                         ["eval", "stability", "--run", str(run), "--backend", backend or self.backend,
+                          "--workers", str(self.workers), *extra])
 
     def deploy(self, name: str, task: str, run: Path | None, agents: str, *extra: str) -> dict:
-        out = self.home / f"deploy-{name}"
         source = ["--run", str(run)] if run is not None else []
-        self.run(f"deploy-{name}", self.finished_run(out),
-                 ["deploy", "stability", "--task", task, *source, "--set", f"deploy.agents={agents}", "--backend", self.backend,
-                  "--workers", str(self.workers), "--out", str(out), *extra])
-        return _metrics(out)
-
-
-def _complete(dataset: Path) -> bool:
-    m = dataset / "manifest.json"
-    return m.exists() and json.loads(m.read_text()).get("status") == "complete"
-
-
-def _metrics(run: Path) -> dict:
-    return json.loads((run / "metrics.json").read_text())
-
-
-def pct(x: float | None) -> str:
-    return "-" if x is None else f"{100 * x:.1f} %"
-
-
-def minutes(s: float | None) -> str:
-    return "-" if s is None else f"{s / 60:.1f} min"
+        return self.verb(f"deploy-{name}", self.home / f"deploy-{name}",
+                         ["deploy", "stability", "--task", task, *source, "--set", f"deploy.agents={agents}",
+                          "--backend", self.backend, "--workers", str(self.workers), *extra])
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -217,12 +155,7 @@ def main(argv: list[str] | None = None) -> int:
                      {True: "yes", False: "no", None: "-"}.get(order, str(order)), "yes"))
 
     print(f"\nstability benchmark, preset {args.preset}, backend {args.backend}, {figures['machine']}\n")
-    widths = [max(len(r[i]) for r in rows + [("measure", "thesis", "physint", "goal / reference")]) for i in range(4)]
-    header = ("measure", "thesis", "physint", "goal / reference")
-    print(" | ".join(h.ljust(w) for h, w in zip(header, widths)))
-    print("-+-".join("-" * w for w in widths))
-    for r in rows:
-        print(" | ".join(c.ljust(w) for c, w in zip(r, widths)))
+    print_table(rows)
     if args.json:
         figures["rows"] = rows
         figures["times_s"] = b.times

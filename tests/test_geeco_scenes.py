@@ -167,3 +167,29 @@ def test_goal_conditioned_variants_read_the_task_from_the_target_image():
         errors[variant] = float(((out["dee"] - truth["dee"]) ** 2).mean())
     # answering the mean (0) scores 1/3: only the y component (+-1) of the three is non-zero
     assert errors["geeco-d"] < 0.05 and errors["e2evmc"] > 0.25, errors
+
+
+@pytest.mark.parametrize("variant", ["geeco-f", "geeco-d", "geeco-r", "e2evmc"])
+def test_the_controller_step_by_step_answers_as_the_whole_window_would(variant):
+    """Control keeps per-frame states for D, R and E2EVMC; its answers match the network on the
+    padded window (the buffer starts as K copies of the first frame)."""
+    from physint_plugins.geeco.control import DEE_SCALE, Policy
+    from physint_plugins.geeco.model import Geeco
+
+    torch.manual_seed(0)
+    model = Geeco(variant, image_size=32, width=0.25)
+    policy = Policy(model)
+    rng = np.random.default_rng(0)
+    target = rng.integers(0, 255, (32, 32, 3), dtype=np.uint8)
+    policy.reset(target)
+    frames = rng.integers(0, 255, (6, 32, 32, 3), dtype=np.uint8)
+    joints = rng.normal(size=(6, 7)).astype(np.float32)
+    padded = np.concatenate([frames[:1].repeat(3, 0), frames])
+    padded_joints = np.concatenate([joints[:1].repeat(3, 0), joints])
+    with torch.no_grad():
+        whole = model(torch.from_numpy(padded).float().div(255).movedim(-1, -3)[None], torch.from_numpy(padded_joints)[None],
+                      torch.from_numpy(target).float().div(255).movedim(-1, -3)[None])
+    for t in range(6):
+        action = policy.act(frames[t], joints[t])
+        assert np.allclose(action[:3], whole["dee"][0, t].numpy() * DEE_SCALE, atol=1e-5)
+        assert action[3] == (-1, 0, 1)[int(whole["grip"][0, t].argmax())]

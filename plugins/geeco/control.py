@@ -66,17 +66,24 @@ class Policy:
         """The next robot action ``(dx, dy, dz, gripper)``; NaN where the network diverged."""
         import torch
 
-        if not self.buffer:  # episode start: pad with copies of the oldest frame (the robot is at rest)
-            self.buffer.extend([(rgb, joints)] * (self.buffer.maxlen - 1))
-        self.buffer.append((rgb, joints))
-        frames = to_tensor_frames(np.stack([f for f, _ in self.buffer]))[None].to(self.device)
-        x = torch.as_tensor(np.stack([j for _, j in self.buffer]), dtype=torch.float32)[None].to(self.device)
+        frame = to_tensor_frames(rgb)[None, None].to(self.device)  # (1, 1, 3, S, S)
+        x = torch.as_tensor(joints, dtype=torch.float32)[None, None].to(self.device)
         with torch.no_grad():
-            out = self.model(frames, x, self.target)
-        dee = out["dee"][0, -1].float().cpu().numpy() * DEE_SCALE
-        grip = GRIP_COMMAND[int(out["grip"][0, -1].argmax())]
-        self.last = {"ee": unscale_positions(out["ee"][0, -1].float().cpu().numpy()),
-                     "obj": unscale_positions(out["obj"][0, -1].float().cpu().numpy()), "frames": frames}
+            # per-frame variants keep each frame's state: one new frame is encoded per step
+            item = frame if self.model.variant == "geeco-f" else self.model.frame_states(frame, x, self.target)
+            if not self.buffer:  # episode start: pad with copies of the oldest frame (the robot is at rest)
+                self.buffer.extend([(frame, x, item)] * (self.buffer.maxlen - 1))
+            self.buffer.append((frame, x, item))
+            frames = torch.cat([f for f, _, _ in self.buffer], dim=1)
+            if self.model.variant == "geeco-f":
+                out = {k: v[:, -1] for k, v in self.model(frames, torch.cat([j for _, j, _ in self.buffer], dim=1),
+                                                          self.target).items()}
+            else:
+                out = self.model.decide(torch.cat([s for _, _, s in self.buffer], dim=1))
+        dee = out["dee"][0].float().cpu().numpy() * DEE_SCALE
+        grip = GRIP_COMMAND[int(out["grip"][0].argmax())]
+        self.last = {"ee": unscale_positions(out["ee"][0].float().cpu().numpy()),
+                     "obj": unscale_positions(out["obj"][0].float().cpu().numpy()), "frames": frames}
         return np.array([*dee, grip], dtype=float)
 
 

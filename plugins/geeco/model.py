@@ -127,7 +127,6 @@ class Geeco(nn.Module):
             raise ValueError(f"need at least {k} frames, got {t}")
         if self.conditioned and target is None:
             raise ValueError(f"{self.variant} needs a target image")
-        flat = frames.flatten(0, 1)  # (B*T, 3, S, S)
         if self.variant == "geeco-f":
             last = frames[:, k - 1:].flatten(0, 1)  # the current frame I_t of each window
             windows = frames.unfold(1, k, 1).permute(0, 1, 5, 2, 3, 4).flatten(0, 1)  # (B*W, K, 3, S, S)
@@ -137,19 +136,30 @@ class Geeco(nn.Module):
                     self._encode(self.diff, dynamic_image(pair))]
             state = self._state(maps, joints[:, k - 1:].flatten(0, 1))[:, None]  # (B*W, 1, state)
         else:
-            obs = self._encode(self.obs, flat - 0.5)
-            maps = [obs]
-            if self.variant == "geeco-d":
-                tgt = target[:, None].expand(-1, t, -1, -1, -1).flatten(0, 1)
-                maps.append(self._encode(self.diff, dynamic_image(torch.stack([flat, tgt], dim=1))))
-            elif self.variant == "geeco-r":
-                goal = self._encode(self.obs, target - 0.5)  # (B, C, s, s)
-                maps.append(goal.repeat_interleave(t, dim=0) - obs)
-            per_frame = self._state(maps, joints.flatten(0, 1)).view(b, t, -1)
+            per_frame = self.frame_states(frames, joints, target)
             state = per_frame.unfold(1, k, 1).permute(0, 1, 3, 2).flatten(0, 1)  # (B*W, K, state)
-        out, _ = self.lstm(state)  # zero initial state for every window
+        return {name: out.view(b, w, -1) for name, out in self.decide(state).items()}
+
+    def frame_states(self, frames: torch.Tensor, joints: torch.Tensor, target: torch.Tensor | None) -> torch.Tensor:
+        """D, R, E2EVMC: the state s_j of each frame on its own, (B, T, state): in control each new
+        frame is encoded once and kept for the next K - 1 steps."""
+        b, t = frames.shape[:2]
+        flat = frames.flatten(0, 1)  # (B*T, 3, S, S)
+        obs = self._encode(self.obs, flat - 0.5)
+        maps = [obs]
+        if self.variant == "geeco-d":
+            tgt = target[:, None].expand(-1, t, -1, -1, -1).flatten(0, 1)
+            maps.append(self._encode(self.diff, dynamic_image(torch.stack([flat, tgt], dim=1))))
+        elif self.variant == "geeco-r":
+            goal = self._encode(self.obs, target - 0.5)  # (B, C, s, s)
+            maps.append(goal.repeat_interleave(t, dim=0) - obs)
+        return self._state(maps, joints.flatten(0, 1)).view(b, t, -1)
+
+    def decide(self, state: torch.Tensor) -> dict[str, torch.Tensor]:
+        """States (N, steps, state) -> heads (N, ...): the LSTM from a zero state, FC + ReLU, four heads."""
+        out, _ = self.lstm(state)
         feature = F.relu(self.fc(out[:, -1]))
-        return {name: head(feature).view(b, w, -1) for name, head in self.heads.items()}
+        return {name: head(feature) for name, head in self.heads.items()}
 
 
 def geeco_loss(out: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], aux_weight: float = 1.0

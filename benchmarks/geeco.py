@@ -1,0 +1,162 @@
+"""GEECO (thesis Chapter 6) beside the thesis's numbers, with physint's own commands.
+
+    python benchmarks/geeco.py [--preset small] [--home DIR] [--workers 2] [--models geeco-f,geeco-d,geeco-r]
+                               [--skip pickplace,goal1cube1,transfer,cross]
+
+Every step is a plain ``physint`` command run in its own process (printed as it starts); a step
+whose result is already under ``--home`` is not run again, so an interrupted benchmark resumes.
+Steps, for each skill (push, pick-and-place) on GOAL2CUBE2:
+
+1. ``physint dataset geeco --set data.skill=SKILL``: wall time (goal: both skills <= 15 min on
+   2 cores at the small preset) and the expert's success rate;
+2. ``physint train geeco --model M`` for GEECO-F, -D and -R: wall time (goal: <= 45 min each);
+3. ``physint eval geeco``: REACH / PUSH, REACH / PICK / PLACE with 95 % CIs beside Table 6.4.1
+   (lambda = 1) and the control rate (goal: >= 50 Hz on a CPU);
+4. (``goal1cube1``) GOAL1CUBE1 with E2EVMC beside GEECO-F: Table 6.C.1;
+5. (``transfer``) the pick-and-place controllers in FG:CLUTTER, BG:PRISMA, NUTONCONE and BALLINCUP:
+   Table 6.4.2;
+6. (``cross``) the pushing GEECO-F trained on this backend, evaluated on the others (not in the thesis).
+
+Results are read back from each run's ``metrics.json``; nothing here computes a metric itself.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from commands import Steps, minutes, pct, print_table  # noqa: E402
+
+# Table 6.4.1 (lambda = 1) and Table 6.C.1: (REACH, PUSH) and (REACH, PICK, PLACE) in %
+THESIS = {
+    ("push", "geeco-r"): (98.90, 79.80), ("push", "geeco-d"): (99.30, 86.60), ("push", "geeco-f"): (99.80, 89.30),
+    ("pickplace", "geeco-r"): (84.90, 50.40, 33.70), ("pickplace", "geeco-d"): (96.20, 79.90, 61.40),
+    ("pickplace", "geeco-f"): (94.80, 78.40, 46.30),
+    ("goal1cube1-push", "e2evmc"): (95.20, 58.60), ("goal1cube1-push", "geeco-f"): (99.20, 72.90),
+}
+# Table 6.4.2, pick-and-place: (REACH, PICK, PLACE) in %
+TRANSFER = {
+    ("clutter", "geeco-r"): (63.80, 29.40, 15.80), ("clutter", "geeco-d"): (77.00, 42.10, 20.70),
+    ("clutter", "geeco-f"): (85.50, 62.60, 32.60), ("prisma", "geeco-r"): (0.50, 0.10, 0.00),
+    ("prisma", "geeco-d"): (94.10, 66.00, 26.50), ("prisma", "geeco-f"): (93.40, 62.40, 19.30),
+    ("nutoncone", "geeco-r"): (32.30, 6.90, 0.40), ("nutoncone", "geeco-d"): (66.60, 23.30, 3.30),
+    ("nutoncone", "geeco-f"): (72.20, 26.90, 6.20), ("ballincup", "geeco-r"): (21.50, 3.90, 0.10),
+    ("ballincup", "geeco-d"): (50.60, 9.70, 0.20), ("ballincup", "geeco-f"): (54.60, 16.30, 1.50),
+}
+LABELS = {"push": ("REACH", "PUSH"), "pickplace": ("REACH", "PICK", "PLACE")}
+GOALS = {"data_min": 15.0, "train_min": 45.0, "hz": 50.0,
+         "push": {"REACH": 0.90, "PUSH": 0.50}, "pickplace": {"PICK": 0.40, "PLACE": 0.25}}
+
+
+def rates_text(metrics: dict, labels: tuple[str, ...]) -> str:
+    r = metrics["rates"]
+    return " / ".join(f"{100 * r[k]['rate']:.1f} ± {100 * r[k]['ci95']:.1f}" for k in labels)
+
+
+def thesis_text(values: tuple[float, ...] | None) -> str:
+    return "-" if values is None else " / ".join(f"{v:.1f}" for v in values)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--preset", default="small")
+    parser.add_argument("--home", default="physint_runs/benchmark-geeco", help="where runs and datasets go")
+    parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--backend", default="mujoco")
+    parser.add_argument("--models", default="geeco-f,geeco-d,geeco-r")
+    parser.add_argument("--skip", default="", help="comma-separated steps to leave out: "
+                                                   "push, pickplace, goal1cube1, transfer, cross")
+    parser.add_argument("--json", help="also write the measured figures to this file")
+    args = parser.parse_args(argv)
+    skip = {s.strip() for s in args.skip.split(",") if s.strip()}
+    unknown = skip - {"push", "pickplace", "goal1cube1", "transfer", "cross"}
+    if unknown:
+        parser.error(f"--skip takes push, pickplace, goal1cube1, transfer, cross; got {', '.join(sorted(unknown))}")
+    models = [m.strip() for m in args.models.split(",") if m.strip()]
+    b = Steps(Path(args.home).resolve(), args.preset, args.workers, args.backend)
+    rows: list[tuple[str, str, str, str]] = []
+    figures: dict = {"preset": args.preset, "backend": args.backend,
+                     "machine": f"{platform.node()} ({os.cpu_count()} CPUs)"}
+    w = ["--workers", str(args.workers)]
+
+    def dataset(name: str, scene: str, skill: str) -> Path:
+        return b.dataset(f"dataset-{name}", b.home / f"data-{name}",
+                         ["geeco", "--scene", scene, "--backend", args.backend, "--set", f"data.skill={skill}"])
+
+    def train(name: str, data: Path, model: str) -> Path:
+        return b.train(f"train-{name}-{model}", b.home / f"train-{name}-{model}",
+                       ["geeco", "--data", str(data), "--model", model, "--backend", args.backend])
+
+    def evaluate(key: str, run: Path, *extra: str) -> dict:
+        return b.verb(f"eval-{key}", b.home / f"eval-{key}", ["eval", "geeco", "--run", str(run), *w, *extra])
+
+    data_seconds = 0.0
+    trained: dict[tuple[str, str], Path] = {}
+    for skill in ("push", "pickplace"):
+        if skill in skip:
+            continue
+        data = dataset(skill, "goal2cube2", skill)
+        stats = json.loads((data / "manifest.json").read_text())["stats"]
+        seconds = b.times.get(f"dataset-{skill}")
+        data_seconds += seconds or 0.0
+        rows.append((f"{skill}: demonstrations ({stats['demos']}), wall time", "-", minutes(seconds), "-"))
+        rows.append((f"{skill}: expert success rate", "-", pct(stats["expert_success_rate"]), "-"))
+        for model in models:
+            run = trained[(skill, model)] = train(skill, data, model)
+            rows.append((f"{skill}: {model} training wall time", "48 h (GPU)", minutes(b.times.get(f"train-{skill}-{model}")),
+                         f"<= {GOALS['train_min']:.0f} min"))
+            m = evaluate(f"{skill}-{model}", run)
+            figures[f"{skill}-{model}"] = m
+            goal = ", ".join(f"{k} >= {pct(v)}" for k, v in GOALS[skill].items())
+            rows.append((f"{skill}: {model} {' / '.join(LABELS[skill])} % (Table 6.4.1)",
+                         thesis_text(THESIS.get((skill, model))), rates_text(m, LABELS[skill]), goal))
+            rows.append((f"{skill}: {model} control rate", "~20 Hz (GPU)", f"{m['control_hz']:.0f} Hz",
+                         f">= {GOALS['hz']:.0f} Hz"))
+    if data_seconds:
+        rows.append(("demonstrations of both skills: wall time", "-", minutes(data_seconds),
+                     f"<= {GOALS['data_min']:.0f} min"))
+
+    if "goal1cube1" not in skip:
+        data = dataset("goal1cube1-push", "goal1cube1", "push")
+        for model in ("e2evmc", "geeco-f"):
+            run = train("goal1cube1-push", data, model)
+            m = evaluate(f"goal1cube1-push-{model}", run)
+            figures[f"goal1cube1-push-{model}"] = m
+            rows.append((f"GOAL1CUBE1 push: {model} REACH / PUSH % (Table 6.C.1)",
+                         thesis_text(THESIS.get(("goal1cube1-push", model))), rates_text(m, LABELS["push"]), "-"))
+
+    if "transfer" not in skip and "pickplace" not in skip:
+        for scene in ("clutter", "prisma", "nutoncone", "ballincup"):
+            for model in models:
+                m = evaluate(f"{scene}-{model}", trained[("pickplace", model)], "--scene", scene)
+                figures[f"{scene}-{model}"] = m
+                rows.append((f"{scene}: {model} REACH / PICK / PLACE % (Table 6.4.2)",
+                             thesis_text(TRANSFER.get((scene, model))), rates_text(m, LABELS["pickplace"]),
+                             f"{m['no_target']} without a target"))
+
+    if "cross" not in skip and "push" not in skip and "geeco-f" in models:
+        for other in ("mujoco", "pybullet", "robosuite"):
+            if other == args.backend:
+                continue
+            m = evaluate(f"push-geeco-f-on-{other}", trained[("push", "geeco-f")], "--backend", other)
+            figures[f"push-geeco-f-on-{other}"] = m
+            rows.append((f"push: geeco-f trained on {args.backend}, run on {other}", "not in the thesis",
+                         rates_text(m, LABELS["push"]), f"{m['no_target']} without a target"))
+
+    print(f"\ngeeco benchmark, preset {args.preset}, backend {args.backend}, {figures['machine']}\n")
+    print_table(rows)
+    if args.json:
+        figures["rows"] = rows
+        figures["times_s"] = b.times
+        Path(args.json).write_text(json.dumps(figures, indent=2, default=str))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
