@@ -95,3 +95,11 @@ def print_table(rows: list[tuple[str, ...]], header: tuple[str, ...] = ("measure
     print("-+-".join("-" * w for w in widths))
     for r in rows:
         print(" | ".join(c.ljust(w) for c, w in zip(r, widths)))
+
+
+def report(title: str, rows: list[tuple[str, ...]], figures: dict, steps: Steps, json_path: str | None) -> None:
+    """Print the table under its title (and the machine); with ``json_path``, write the figures too."""
+    print(f"\n{title}, {figures['machine']}\n")
+    print_table(rows)
+    if json_path:
+        Path(json_path).write_text(json.dumps({**figures, "rows": rows, "times_s": steps.times}, indent=2, default=str))

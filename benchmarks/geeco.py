@@ -30,7 +30,7 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from commands import Steps, minutes, pct, print_table  # noqa: E402
+from commands import Steps, minutes, pct, report  # noqa: E402
 
 # Table 6.4.1 (lambda = 1) and Table 6.C.1: (REACH, PUSH) and (REACH, PICK, PLACE) in %
 THESIS = {
@@ -149,12 +149,7 @@ def main(argv: list[str] | None = None) -> int:
             rows.append((f"push: geeco-f trained on {args.backend}, run on {other}", "not in the thesis",
                          rates_text(m, LABELS["push"]), f"{m['no_target']} without a target"))
 
-    print(f"\ngeeco benchmark, preset {args.preset}, backend {args.backend}, {figures['machine']}\n")
-    print_table(rows)
-    if args.json:
-        figures["rows"] = rows
-        figures["times_s"] = b.times
-        Path(args.json).write_text(json.dumps(figures, indent=2, default=str))
+    report(f"geeco benchmark, preset {args.preset}, backend {args.backend}", rows, figures, b, args.json)
     return 0
 
 

@@ -31,7 +31,7 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from commands import Steps, minutes, pct, print_table  # noqa: E402
+from commands import Steps, minutes, pct, report  # noqa: E402
 
 # thesis Table 3.3 (simulated row), Table 3.4 (first row) and the small-preset goals
 THESIS = {
@@ -154,12 +154,7 @@ def main(argv: list[str] | None = None) -> int:
         rows.append(("stackability: cuboid face > upright cyl. > lying cyl. > sphere (Fig. 3.6)", "yes",
                      {True: "yes", False: "no", None: "-"}.get(order, str(order)), "yes"))
 
-    print(f"\nstability benchmark, preset {args.preset}, backend {args.backend}, {figures['machine']}\n")
-    print_table(rows)
-    if args.json:
-        figures["rows"] = rows
-        figures["times_s"] = b.times
-        Path(args.json).write_text(json.dumps(figures, indent=2, default=str))
+    report(f"stability benchmark, preset {args.preset}, backend {args.backend}", rows, figures, b, args.json)
     return 0
 
 
