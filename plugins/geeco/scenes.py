@@ -178,7 +178,7 @@ def sample_clutter(ep: Episode, rng: np.random.Generator) -> list[tuple[str, flo
 
 def camera(resolution: int) -> Camera:
     """The front camera: sees the table, the objects and the robot's hand."""
-    return Camera("front", pos=(0.62, 0.0, TABLE_Z + 0.62), lookat=(-0.04, 0.0, TABLE_Z - 0.02), fovy=48.0,
+    return Camera("front", pos=(0.45, 0.0, TABLE_Z + 0.75), lookat=(0.02, 0.0, TABLE_Z), fovy=45.0,
                   width=resolution, height=resolution)
 
 
