@@ -170,7 +170,7 @@ class Expert:
                 self._next("above_start")
             return _toward(at, [start[0], start[1], TABLE_Z + PUSH_HOVER], SPEED), CLOSE
         if self.phase == "behind":
-            return self._go(at, [at[0], at[1], TABLE_Z + PUSH_HOVER], SPEED, "above_start"), NOOP
+            return self._go(at, [at[0], at[1], TABLE_Z + PUSH_HOVER], SPEED, "above_start", wait=0), NOOP
         if self.phase == "above_start":
             return self._go(at, [start[0], start[1], TABLE_Z + PUSH_HOVER], SPEED, "down", wait=0), NOOP
         if self.phase == "down":
