@@ -1,16 +1,18 @@
 """The scripted expert that records GEECO's demonstrations (thesis Section 6.4, "pre-computed plan").
 
-It sees the simulator's true state (privileged) and re-plans every control step, so small slips
-(a cube turning while pushed) are corrected:
+It sees the simulator's true state (privileged) and follows the object as it moves:
 
 * pick-and-place: approach above the object, descend, grasp, lift, carry above the target,
   lower, release, retreat;
 * pushing: close the fingers, go behind the cube on the line through cube and target, push
-  along that line (steering back onto it) until the cube sits on the target, retreat.
+  along that line in a straight stroke; a cube left more than ``PUSH_TOLERANCE`` from the
+  target's centre (it turned or slid sideways) gets another stroke from behind, three at most.
 
-Every plan ends with the hand parked at ``REST_EE``, out of the way, so the demonstration's last
-frame is a clean target image. Commands are end-effector displacements of at most ``SPEED`` per
-step (the robot clips at ``Robot.max_delta``) and a gripper command in {-1 open, 0 no-op, +1 close}.
+Plans run on the commanded hand position (the robot's goal in ``goal_mode="desired"``); where
+contact matters (grasping, placing, starting a stroke, rising before moving over) a phase also
+waits for the hand to catch up. Every plan ends with the hand parked at ``REST_EE``, out of the
+way, so the demonstration's last frame is a clean target image. Commands are end-effector
+displacements of at most ``SPEED`` per step and a gripper command in {-1 open, 0 no-op, +1 close}.
 """
 
 from __future__ import annotations
@@ -54,7 +56,7 @@ def on_target(ep: Episode, sim) -> bool:
     if tgt.endswith("_pad"):
         from .scenes import PAD
 
-        inside = bool(np.all(np.abs(rel) <= PAD / 2))
+        inside = bool(np.all(np.abs(rel) <= PAD / 2))  # the pad's axes are the world's
         surface = target_top(tgt, ep.skill) if ep.skill == "pickplace" else 0.0  # pushing pads are markings
         resting = abs(z - (surface + object_half_height(obj))) < 0.012
         return inside and resting
