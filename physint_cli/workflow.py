@@ -196,6 +196,11 @@ def run_train(opts: Options) -> dict[str, Any]:
         base = {**resume_run.info, "_config_file": resume_run.path / "config.yaml"}
     method, ctx = make_context(opts, base)
     data = ensure_dataset(method, ctx, opts.data or (Path(base["data"]) if base.get("data") else None))
+    scene = read_manifest(data, ctx.method).get("scene")
+    if scene and scene != ctx.scene:  # a --data dataset says what scene the run is of
+        if opts.scene:
+            raise BadInput(f"--scene {opts.scene}, but the dataset {data} is of scene {scene}")
+        ctx = ctx.with_(scene=scene)
     ctx = ctx.with_(data=data)
     t0 = time.perf_counter()
     if resume_run is not None:

@@ -184,3 +184,10 @@ def test_tiny_pipeline_on_robosuite(tmp_path):
     assert code == 0, err
     result = json.loads(stdout)
     assert result["eval"]["metrics"]["backend"] == "robosuite" and result["deploy"]["metrics"]["steps"] == 40
+
+
+def test_a_run_takes_the_scene_of_its_dataset(tiny_pipeline, tmp_path):
+    out, _ = tiny_pipeline
+    code, _, err = call("train", "geeco", "--preset", "tiny", "--data", str(out / "dataset"), "--scene", "goal1cube1",
+                        "--out", str(tmp_path / "r"))
+    assert code == 2 and "is of scene goal2cube2" in err
