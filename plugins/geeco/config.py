@@ -33,8 +33,8 @@ class TrainConfig:
     lr: float = field_(5e-4, "Adam learning rate (thesis: 1e-4)")
     aux_weight: float = field_(1.0, "lambda of Eq. 6.3: weight of the auxiliary position losses (thesis: 0 or 1)")
     width: float = field_(0.5, "encoder filter multiplier (1.0: Table 6.A.1)")
-    norm: bool = field_(True, "group normalisation after each convolution (not in Table 6.A.1: the plain "
-                              "encoders learn the commands far slower on a CPU budget)")
+    norm: bool = field_(True, "group normalisation after each convolution (not in Table 6.A.1; the plain "
+                              "encoders learned the commands slower, see docs/geeco.md)")
     val_episodes: int = field_(12, "closed-loop validation episodes after each epoch picking the best checkpoint "
                                     "(0: validation loss instead)")
     precision: str = field_("auto", "fp32, bf16, or auto (bf16 where the hardware has it natively)")

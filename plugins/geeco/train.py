@@ -147,11 +147,15 @@ def train(ctx: Context) -> dict[str, Any]:
     manifest = read_manifest(ctx.data, "geeco")
     data_cfg = manifest["config"].get("data", manifest["config"])
     skill, scene = data_cfg["skill"], manifest["scene"]
-    ctx = ctx.with_(scene=scene)
     name = ctx.options.get("model", cfg.model)
-    model, kwargs = build_model(name, data_cfg["resolution"], cfg.width, cfg.norm)
     if cfg.chunk < 1 or cfg.chunk > data_cfg["horizon"]:
         raise BadInput(f"train.chunk must be in [1, {data_cfg['horizon']}], got {cfg.chunk}")
+    for key in ("epochs", "batch_size"):
+        if getattr(cfg, key) < 1:
+            raise BadInput(f"train.{key} must be >= 1, got {getattr(cfg, key)}")
+    if cfg.width <= 0 or cfg.lr <= 0 or cfg.aux_weight < 0 or cfg.val_episodes < 0:
+        raise BadInput("train.width and train.lr must be > 0, train.aux_weight and train.val_episodes >= 0")
+    model, kwargs = build_model(name, data_cfg["resolution"], cfg.width, cfg.norm)
     train_demos, val_demos = load_split(ctx.data, "train"), load_split(ctx.data, "val")
     train_set, val_set = Chunks(train_demos, cfg.chunk), Chunks(val_demos, cfg.chunk)
     ctx.log(f"training {name} on {len(train_demos['rgb'])} {skill} demonstrations of {scene} "
