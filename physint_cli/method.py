@@ -143,3 +143,35 @@ class Method:
             from .errors import unknown
 
             raise BadInput(f"method {self.name!r}: {unknown('scene', scene, self.scenes)}")
+
+
+class PackageMethod(Method):
+    """A method whose verbs live in modules of its own package, one module per chapter section:
+
+    ``dataset.plan_units(ctx)``, ``dataset.generate(ctx, unit)``, ``dataset.summarize(stats)``,
+    ``train.train(ctx)``, ``evaluate.evaluate(ctx)`` and ``deploy.deploy(ctx)``. Modules are
+    imported when a verb first needs them (so listing plugins stays fast).
+    """
+
+    def _module(self, name: str):
+        import importlib
+
+        return importlib.import_module(f"{type(self).__module__.rsplit('.', 1)[0]}.{name}")
+
+    def dataset_units(self, ctx: Context) -> list[Unit]:
+        return self._module("dataset").plan_units(ctx)
+
+    def generate(self, ctx: Context, unit: Unit) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
+        return self._module("dataset").generate(ctx, unit)
+
+    def summarize_dataset(self, ctx: Context, stats: list[dict[str, Any]]) -> dict[str, Any]:
+        return self._module("dataset").summarize(stats)
+
+    def train(self, ctx: Context) -> dict[str, Any]:
+        return self._module("train").train(ctx)
+
+    def evaluate(self, ctx: Context) -> dict[str, Any]:
+        return self._module("evaluate").evaluate(ctx)
+
+    def deploy(self, ctx: Context) -> dict[str, Any]:
+        return self._module("deploy").deploy(ctx)
