@@ -50,6 +50,7 @@ def test_pipeline_reports_thesis_metrics_and_leaves_things_to_look_at(tiny_pipel
     for rate in ev["rates"].values():
         assert 0 <= rate["rate"] <= 1 and rate["ci95"] >= 0
     assert ev["control_hz"] > 0 and ev["diverged"] == 0
+    assert ev["object_to_target_m"]["start"] >= 0.16  # objects start at least 16 cm from their targets
     assert len((out / "eval" / "artifacts" / "episodes.jsonl").read_text().splitlines()) == 2
     de = result["deploy"]["metrics"]
     assert de["goal"] == de["task"] and de["steps"] == 40

@@ -117,6 +117,8 @@ def summarize(results: list[dict[str, Any]], skill: str) -> dict[str, Any]:
     for r in ran:
         per_task.setdefault(r["task"], []).append(r["success"])  # type: ignore[arg-type]
     return {"episodes": n, "rates": rates, "diverged": sum(bool(r["diverged"]) for r in ran),
+            "object_to_target_m": {when: float(np.median([r[f"{when}_distance"] for r in ran])) if n else float("nan")
+                                   for when in ("start", "final")},  # medians
             "no_target": len(results) - n, "control_hz": steps / seconds if seconds else float("nan"),
             "success_by_task": {t: float(np.mean(v)) for t, v in sorted(per_task.items())}}  # type: ignore[arg-type]
 
