@@ -124,9 +124,9 @@ def main(argv: list[str] | None = None) -> int:
                      "eval.occlusion_images=0")
         figures["cross"] = {"forward": fwd.get("cross_backend"), "reverse": rev.get("cross_backend")}
         rows.append((f"trained on {b.backend}, tested on {other} renders", "-",
-                     pct((fwd.get("cross_backend") or {}).get("accuracy")), f"same-backend {pct(fwd['accuracy'])}"))
+                     pct((fwd.get("cross_backend") or {}).get(other, {}).get("accuracy")), f"same-backend {pct(fwd['accuracy'])}"))
         rows.append((f"trained on {other}, tested on {b.backend} renders", "-",
-                     pct((rev.get("cross_backend") or {}).get("accuracy")), f"same-backend {pct(rev['accuracy'])}"))
+                     pct((rev.get("cross_backend") or {}).get(b.backend, {}).get("accuracy")), f"same-backend {pct(rev['accuracy'])}"))
 
     # 5: deployment (Figs. 3.5-3.9)
     if "deploy" not in skip:
