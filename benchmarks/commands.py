@@ -7,6 +7,7 @@ benchmark's home is not run again, so an interrupted benchmark resumes where it 
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import shutil
@@ -103,3 +104,14 @@ def report(title: str, rows: list[tuple[str, ...]], figures: dict, steps: Steps,
     print_table(rows)
     if json_path:
         Path(json_path).write_text(json.dumps({**figures, "rows": rows, "times_s": steps.times}, indent=2, default=str))
+
+
+def benchmark_parser(doc: str, method: str) -> argparse.ArgumentParser:
+    """The options every method benchmark takes: --preset, --home, --workers, --backend, --json."""
+    parser = argparse.ArgumentParser(description=doc.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--preset", default="small")
+    parser.add_argument("--home", default=f"physint_runs/benchmark-{method}", help="where runs and datasets go")
+    parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--backend", default="mujoco")
+    parser.add_argument("--json", help="also write the measured figures to this file")
+    return parser

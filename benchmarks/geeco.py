@@ -22,7 +22,6 @@ Results are read back from each run's ``metrics.json``; nothing here computes a 
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import platform
@@ -30,7 +29,7 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from commands import Steps, minutes, pct, report  # noqa: E402
+from commands import Steps, benchmark_parser, minutes, pct, report  # noqa: E402
 
 # Table 6.4.1 (lambda = 1) and Table 6.C.1: (REACH, PUSH) and (REACH, PICK, PLACE) in %
 THESIS = {
@@ -63,16 +62,10 @@ def thesis_text(values: tuple[float, ...] | None) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--preset", default="small")
-    parser.add_argument("--home", default="physint_runs/benchmark-geeco", help="where runs and datasets go")
-    parser.add_argument("--workers", type=int, default=2)
-    parser.add_argument("--backend", default="mujoco")
+    parser = benchmark_parser(__doc__, "geeco")
     parser.add_argument("--models", default="geeco-f,geeco-d,geeco-r")
     parser.add_argument("--skip", default="", help="comma-separated steps to leave out: "
                                                    "push, pickplace, goal1cube1, transfer, cross")
-    parser.add_argument("--json", help="also write the measured figures to this file")
     args = parser.parse_args(argv)
     skip = {s.strip() for s in args.skip.split(",") if s.strip()}
     unknown = skip - {"push", "pickplace", "goal1cube1", "transfer", "cross"}

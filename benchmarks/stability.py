@@ -23,7 +23,6 @@ read back from each run's ``metrics.json``; nothing here computes a metric itsel
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import platform
@@ -31,7 +30,7 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from commands import Steps, minutes, pct, report  # noqa: E402
+from commands import Steps, benchmark_parser, minutes, pct, report  # noqa: E402
 
 # thesis Table 3.3 (simulated row), Table 3.4 (first row) and the small-preset goals
 THESIS = {
@@ -66,15 +65,9 @@ class Bench(Steps):
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--preset", default="small")
-    parser.add_argument("--home", default="physint_runs/benchmark-stability", help="where runs and datasets go")
-    parser.add_argument("--workers", type=int, default=2)
-    parser.add_argument("--backend", default="mujoco")
+    parser = benchmark_parser(__doc__, "stability")
     parser.add_argument("--cross-backend", default="pybullet", help="the other backend of step 4")
     parser.add_argument("--skip", default="", help="comma-separated steps to leave out: cubes, cross, deploy")
-    parser.add_argument("--json", help="also write the measured figures to this file")
     args = parser.parse_args(argv)
     skip = {s.strip() for s in args.skip.split(",") if s.strip()}
     unknown = skip - {"cubes", "cross", "deploy"}

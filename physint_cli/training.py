@@ -244,3 +244,33 @@ def fit(model, train_set, val_set, *, run, epochs: int, batch_size: int, lr: flo
             log(f"epoch {epoch + 1}/{epochs}: train loss {point['train_loss']:.4f}, val {val:.4f}")
         barrier(d)
     return FitResult(epochs=epochs, best_metric=float(best) if best is not None else float("nan"), history=history)
+
+
+# -- registered models ------------------------------------------------------------------------
+
+def registered_model(method: str, name: str):
+    """The ``ModelInfo`` a plugin registered for ``method`` under ``name``; unknown names exit 2."""
+    from .errors import unknown
+    from .plugins import get_plugins
+
+    models = get_plugins().models_for(method)
+    if name not in models:
+        raise unknown(f"model for {method}", name, models)
+    return models[name]
+
+
+def load_trained_model(run_dir, method: str, what: str, device: str = "cpu"):
+    """The best checkpoint of a trained run of ``method`` (its meta names the registered model and
+    its constructor arguments), in eval mode, and that meta. Anything else exits 2, naming ``what``
+    was expected."""
+    from .plugins import get_plugins
+    from .runs import Run
+
+    path = Run(Path(run_dir)).checkpoint("best")
+    state = load_checkpoint(path, device)
+    meta = state.get("meta", {})
+    if meta.get("method") != method or meta.get("model") not in get_plugins().models_for(method):
+        raise BadInput(f"checkpoint {path} is not a {what} (method {meta.get('method')!r}, model {meta.get('model')!r})")
+    model = registered_model(method, meta["model"]).build(**meta["kwargs"])
+    model.load_state_dict(state["model"])
+    return model.to(device).eval(), meta

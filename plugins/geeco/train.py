@@ -27,14 +27,10 @@ FIELDS = ["rgb", "joints", "ee", "obj", "dee", "grip", "layout", "task", "seed"]
 
 def build_model(name: str, image_size: int, width: float, norm: bool = False):
     """A registered GEECO model (``register_models``)."""
-    from physint_cli.errors import unknown
-    from physint_cli.plugins import get_plugins
+    from physint_cli.training import registered_model
 
-    models = get_plugins().models_for("geeco")
-    if name not in models:
-        raise unknown("model for geeco", name, models)
     kwargs = {"image_size": int(image_size), "width": float(width), "norm": bool(norm)}
-    return models[name].build(**kwargs), kwargs
+    return registered_model("geeco", name).build(**kwargs), kwargs
 
 
 def load_split(root: Path, split: str) -> dict[str, np.ndarray]:
@@ -184,20 +180,9 @@ def train(ctx: Context) -> dict[str, Any]:
 
 def load_controller(run_dir, device: str = "cpu"):
     """The best checkpoint of a trained GEECO run, in eval mode, and its meta."""
-    from physint_cli.plugins import get_plugins
-    from physint_cli.runs import Run
-    from physint_cli.training import load_checkpoint
+    from physint_cli.training import load_trained_model
 
-    path = Run(Path(run_dir)).checkpoint("best")
-    state = load_checkpoint(path, device)
-    meta = state.get("meta", {})
-    models = get_plugins().models_for("geeco")
-    if meta.get("method") != "geeco" or meta.get("model") not in models:
-        raise BadInput(f"checkpoint {path} is not a GEECO controller (method {meta.get('method')!r}, "
-                       f"model {meta.get('model')!r})")
-    model = models[meta["model"]].build(**meta["kwargs"])
-    model.load_state_dict(state["model"])
-    return model.to(device).eval(), meta
+    return load_trained_model(run_dir, "geeco", "GEECO controller", device)
 
 
 def _plot_curves(run, history, closed_loop: bool) -> None:

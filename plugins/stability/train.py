@@ -7,7 +7,6 @@ logistic loss of Eq. 3.2, with physically plausible augmentation (towers stay up
 from __future__ import annotations
 
 import inspect
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -20,14 +19,9 @@ FIELDS = ["image", "label"]
 
 def build_model(name: str, input_size: int, width: int):
     """A registered stability model (``register_models``), given the input size (and width if it has one)."""
-    from physint_cli.plugins import get_plugins
+    from physint_cli.training import registered_model
 
-    models = get_plugins().models_for("stability")
-    if name not in models:
-        from physint_cli.errors import unknown
-
-        raise unknown("model for stability", name, models)
-    build = models[name].build
+    build = registered_model("stability", name).build
     kwargs: dict[str, Any] = {"in_size": input_size}
     if "width" in inspect.signature(build).parameters:
         kwargs["width"] = width
@@ -127,18 +121,10 @@ def train(ctx: Context) -> dict[str, Any]:
 
 def load_predictor(run_dir, device: str = "cpu"):
     """The best checkpoint of a trained stability run, in eval mode, with its input size."""
-    from physint_cli.plugins import get_plugins
-    from physint_cli.runs import Run
-    from physint_cli.training import load_checkpoint
+    from physint_cli.training import load_trained_model
 
-    state = load_checkpoint(Run(Path(run_dir)).checkpoint("best"), device)
-    meta = state.get("meta", {})
-    models = get_plugins().models_for("stability")
-    if meta.get("method") != "stability" or meta.get("model") not in models:
-        raise BadInput(f"checkpoint in {run_dir} is not a stability predictor (model {meta.get('model')!r})")
-    model = models[meta["model"]].build(**meta["kwargs"])
-    model.load_state_dict(state["model"])
-    return model.to(device).eval(), int(meta["kwargs"]["in_size"])
+    model, meta = load_trained_model(run_dir, "stability", "stability predictor", device)
+    return model, int(meta["kwargs"]["in_size"])
 
 
 def _plot_curves(run, history) -> None:
