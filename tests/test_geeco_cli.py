@@ -79,6 +79,7 @@ def test_a_goal_in_words_and_the_target_image_it_made_give_the_same_start(tiny_p
     (["dataset", "geeco", "--scene", "clutter"], "for evaluation only"),
     (["dataset", "geeco", "--set", "data.skill=fly"], "data.skill must be one of push, pickplace"),
     (["dataset", "geeco", "--set", "data.demos=2"], "data.demos must be >= 4"),
+    (["dataset", "geeco", "--set", "data.action_noise=0.5"], "data.action_noise must be in [0, 0.02]"),
     (["train", "geeco", "--model", "geeco-x"], "geeco-x"),
 ])
 def test_bad_input_exits_2_with_one_line(args, message):

@@ -100,6 +100,31 @@ def test_expert_picks_and_places_each_goal2cube2_task_within_a_demonstration():
     assert sum(ok and done for ok, done in results) >= 3, results  # placed, and the hand parked by step 100
 
 
+def test_expert_pushes_each_goal2cube2_task_onto_its_pad_within_a_demonstration():
+    rng = np.random.default_rng(5)
+    episodes = [S.sample_episode("goal2cube2", "push", task, rng) for task in S.tasks("goal2cube2") * 2]
+    with pb.make("mujoco", S.build_scene(episodes[0], 32)) as sim:
+        results = [run_expert(sim, ep) for ep in episodes]
+    assert sum(ok and done for ok, done in results) >= 6, results  # pushed onto the pad, hand parked by step 100
+
+
+def test_demonstration_noise_moves_the_hand_not_the_recorded_command():
+    from physint_plugins.geeco.expert import SETTLING
+
+    ep = S.sample_episode("goal2cube2", "push", (0, 0), np.random.default_rng(2))
+    expert = Expert(ep)
+    with pb.make("mujoco", S.build_scene(ep, 32)) as sim:
+        command = expert.act(sim)
+        goal = expert.goal.copy()
+        noise = np.array([0.004, -0.002, 0.001])
+        executed = expert.perturb(command, noise)
+        assert np.allclose(executed[:3], command[:3] + noise) and executed[3] == command[3]
+        assert np.allclose(expert.goal, goal + noise)  # the plan goes on from where the hand was sent
+        for phase in SETTLING:  # holding still or leaving: the hand and the target image stay clean
+            expert.phase = phase
+            assert np.array_equal(expert.perturb(command, noise), command)
+
+
 def test_a_cube_left_beside_its_pad_is_not_on_target():
     ep = S.sample_episode("goal2cube2", "pickplace", (0, 1), np.random.default_rng(4))
     with pb.make("mujoco", S.build_scene(ep, 32)) as sim:

@@ -22,6 +22,8 @@ class DataConfig:
     horizon: int = field_(100, "steps per demonstration, H (25 Hz: 4 s)")
     per_shard: int = field_(20, "demonstrations per shard (work unit)")
     max_attempts: int = field_(30, "start states tried per demonstration before giving up")
+    action_noise: float = field_(0.003, "std (m) of noise added to the executed hand displacements, not to the "
+                                        "recorded commands (DART; the thesis: 0)")
 
 
 @dataclass
@@ -67,6 +69,7 @@ PRESETS = {
              "deploy.steps": 40},
     "small": {},
     "paper": {"data.demos": 4000, "data.resolution": 256, "data.per_shard": 25, "train.epochs": 40,
+              "data.action_noise": 0.0,
               "train.batch_size": 32, "train.chunk": 1, "train.lr": 1e-4, "train.width": 1.0, "train.norm": False, "train.val_episodes": 50,
               "eval.episodes": 1000},
 }

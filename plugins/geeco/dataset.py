@@ -43,6 +43,8 @@ def check(ctx: Context) -> None:
         raise BadInput(f"data.skill must be one of {', '.join(S.SKILLS)}, got {cfg.skill!r}")
     if cfg.resolution < 16:
         raise BadInput(f"data.resolution must be >= 16, got {cfg.resolution}")
+    if not 0 <= cfg.action_noise <= 0.02:
+        raise BadInput(f"data.action_noise must be in [0, 0.02] m, got {cfg.action_noise}")
     if cfg.horizon < 60:
         raise BadInput(f"data.horizon must be >= 60 steps (the expert needs ~60), got {cfg.horizon}")
 
@@ -52,8 +54,11 @@ def plan_units(ctx: Context) -> list[Unit]:
     return split_units(split_counts(ctx.config.data.demos), ctx.config.data.per_shard, ctx.seed)
 
 
-def record(sim, ep: S.Episode, horizon: int) -> tuple[dict[str, np.ndarray], bool]:
-    """Run the expert from ``ep``'s start state for ``horizon`` steps on a live simulation."""
+def record(sim, ep: S.Episode, horizon: int, noise: float = 0.0, rng: np.random.Generator | None = None
+           ) -> tuple[dict[str, np.ndarray], bool]:
+    """Run the expert from ``ep``'s start state for ``horizon`` steps on a live simulation; with
+    ``noise`` > 0 the executed displacements are perturbed (``Expert.perturb``), the recorded
+    commands are the expert's own."""
     expert = Expert(ep)
     res = ep_resolution(sim)
     out = {"rgb": np.zeros((horizon, res, res, 3), np.uint8), "joints": np.zeros((horizon, 7), np.float32),
@@ -69,6 +74,8 @@ def record(sim, ep: S.Episode, horizon: int) -> tuple[dict[str, np.ndarray], boo
         action = expert.act(sim)
         out["dee"][t] = action[:3]
         out["grip"][t] = GRIP_CLASS[int(action[3])]
+        if noise > 0:
+            action = expert.perturb(action, rng.normal(0.0, noise, 3))
         sim.robot.act(action)
         if expert.done and done_at is None:
             done_at = t
@@ -97,7 +104,7 @@ def demonstrations(ctx: Context, unit: Unit, sim=None):
                     sim = ctx.make_sim(scene)
                 else:
                     sim.reset(scene)
-                arrays, ok = record(sim, ep, cfg.horizon)
+                arrays, ok = record(sim, ep, cfg.horizon, cfg.action_noise, rng)
                 if ok:
                     yield ep, arrays, attempt
                     break

@@ -5,12 +5,12 @@ It sees the simulator's true state (privileged) and follows the object as it mov
 * pick-and-place: approach above the object, descend, grasp, lift, carry above the target,
   lower, release, retreat;
 * pushing: close the fingers, go behind the cube on the line through cube and target, push
-  along that line in a straight stroke; a cube left more than ``PUSH_TOLERANCE`` from the
-  target's centre (it turned or slid sideways) gets another stroke from behind, three at most.
+  along that line, steering onto the line through the cube's current centre; a cube that slid
+  out of reach gets another push from behind it. Pushing is a feedback law on the current
+  state (:meth:`Expert._push`), so the demonstrations show one consistent response per state.
 
 Plans run on the commanded hand position (the robot's goal in ``goal_mode="desired"``); where
-contact matters (grasping, placing, starting a stroke, rising before moving over) a phase also
-waits for the hand to catch up. Every plan ends with the hand parked at ``REST_EE``, out of the
+contact matters (grasping, placing, starting a push) a phase also waits for the hand to catch up. Every plan ends with the hand parked at ``REST_EE``, out of the
 way, so the demonstration's last frame is a clean target image. Commands are end-effector
 displacements of at most ``SPEED`` per step and a gripper command in {-1 open, 0 no-op, +1 close}.
 """
@@ -25,12 +25,16 @@ from .scenes import (CUBE, CUP_HEIGHT, CONE_HEIGHT, NUT_RADIUS, NUT_WALL, REST_E
 SPEED = 0.03  # m per control step in free space (0.75 m/s at 25 Hz)
 SLOW = 0.015  # near objects
 PUSH_SPEED = 0.015
-PUSH_HOVER = 0.075  # the hand moves between strokes at this height
-PUSH_TOLERANCE = 0.03  # a stroke leaving the cube's centre further from the target's is followed by another
+PUSH_HOVER = 0.075  # the hand flies to the start of a push at this height
+PUSH_CLEAR = 0.1  # after pushing, the hand rises this high before it leaves
+PUSH_DONE = 0.03  # the push ends with the cube's centre this close to the target's
+PUSH_CORRIDOR = 0.03  # a hand this far beside the line through the cube's centre keeps pushing
 PUSH_HEIGHT = 0.017  # the hand (between the fingertips) while pushing: low on the cube, so it slides, not tips
 HOVER = 0.13  # carrying height above the table
 HAND_TOLERANCE = 0.012  # a phase ends when the hand is this close to where it was sent
+HAND_REACH = 0.03  # pushing: the hand is over the start when this close (some backends hold it ~1.5 cm short at the far edge)
 OPEN, NOOP, CLOSE = -1, 0, 1
+SETTLING = ("grasp", "release", "retreat", "rest")  # phases the demonstration noise leaves alone
 
 
 def _toward(ee: np.ndarray, goal: np.ndarray, speed: float) -> np.ndarray:
@@ -74,12 +78,10 @@ class Expert:
 
     def __init__(self, ep: Episode):
         self.ep = ep
-        self.phase = "close" if ep.skill == "push" else "above"
+        self.phase = "push" if ep.skill == "push" else "above"
         self.steps_in_phase = 0
         self.done = False
         self.goal: np.ndarray | None = None  # where the commands so far put the hand (robot goal_mode "desired")
-        self.stroke: tuple[np.ndarray, np.ndarray] | None = None  # pushing: (start, end) of the current stroke
-        self.strokes = 0
         self._arrived = 0
 
     def _next(self, phase: str) -> None:
@@ -94,6 +96,16 @@ class Expert:
         self.goal = self.goal + move
         self.steps_in_phase += 1
         return np.array([*move, grip], dtype=float)
+
+    def perturb(self, action: np.ndarray, noise: np.ndarray) -> np.ndarray:
+        """``action`` with ``noise`` (m) added to its displacement, the plan following the perturbed
+        hand; unchanged while the hand holds still (grasping, releasing) or leaves for its rest, so
+        the target image stays clean. Recording the unperturbed commands in states the noise led to
+        shows a learner how to recover from its own errors (DART, Laskey et al. 2017)."""
+        if self.done or self.phase in SETTLING or not np.any(action[:3]):
+            return action
+        self.goal = self.goal + noise
+        return np.array([*(action[:3] + noise), action[3]], dtype=float)
 
     def _rest(self, ee: np.ndarray) -> tuple[np.ndarray, int]:
         move = _toward(ee, REST_EE, SPEED)
@@ -149,43 +161,42 @@ class Expert:
         return self._rest(at)
 
     # -- pushing ----------------------------------------------------------------------------------
-    def _plan_stroke(self, cube: np.ndarray, tgt: np.ndarray) -> None:
-        """From behind the cube to where its centre reaches the target's."""
-        direction = (tgt - cube) / max(np.linalg.norm(tgt - cube), 1e-9)
-        # the stroke ends a little past where the fingers would leave the cube's centre on the target's:
-        # the hand lags its goal and the fingertips' faces lie up to 1 cm ahead of the hand's point
-        self.stroke = (push_start(cube, tgt), tgt - direction * (CUBE / 2 + 0.004))
-        self.strokes += 1
-
     def _push(self, sim, at: np.ndarray) -> tuple[np.ndarray, int]:
-        """Straight strokes through the cube's centre towards the target's; a stroke that leaves the
-        cube short (it turned or slid sideways) is followed by another from behind it (at most three)."""
+        """Pushing as a feedback law on what the camera shows (the hand, the cube, the target): the
+        command depends on the current state alone, not on a plan made earlier, so a controller
+        imitating it can recover from where it went astray. With d the unit vector from the cube's
+        centre to the target's:
+
+        * cube within ``PUSH_DONE`` of the target: rise, then park the hand;
+        * hand low behind the cube, near the line through its centre along d: push along d,
+          steering back onto that line and slowing down as the cube nears the target;
+        * hand above the start point behind the cube: descend to pushing height;
+        * hand low anywhere else: rise; high: fly over to above the start point.
+        """
         ep = self.ep
         cube = sim.get_pose(ep.object)[0][:2]
         tgt = ep.xy(ep.target)
+        grip = CLOSE if self.steps_in_phase < 3 else NOOP  # close the fingers on the way: they push as one flat tip
+        remaining = float(np.linalg.norm(tgt - cube))
+        if remaining < PUSH_DONE or self.phase == "rest":
+            self.phase = "rest"  # the cube stays put once the hand has left it
+            if at[2] < TABLE_Z + PUSH_CLEAR:
+                return _toward(at, [at[0], at[1], TABLE_Z + PUSH_CLEAR + 0.02], SPEED), grip
+            return self._rest(at)[0], grip
+        d = (tgt - cube) / remaining
+        normal = np.array([-d[1], d[0]])
+        start = push_start(cube, tgt)
         height = TABLE_Z + PUSH_HEIGHT
-        if self.stroke is None:
-            self._plan_stroke(cube, tgt)
-        start, end = self.stroke
-        if self.phase == "close":  # close the fingers on the way: they push as one flat tip
-            if self.steps_in_phase >= 3:
-                self._next("above_start")
-            return _toward(at, [start[0], start[1], TABLE_Z + PUSH_HOVER], SPEED), CLOSE
-        if self.phase == "behind":
-            return self._go(at, [at[0], at[1], TABLE_Z + PUSH_HOVER], SPEED, "above_start", wait=0), NOOP
-        if self.phase == "above_start":
-            return self._go(at, [start[0], start[1], TABLE_Z + PUSH_HOVER], SPEED, "down", wait=0), NOOP
-        if self.phase == "down":
-            return self._go(at, [start[0], start[1], height], SPEED, "push"), NOOP
-        if self.phase == "push":
-            return self._go(at, [end[0], end[1], height], PUSH_SPEED, "check", wait=0), NOOP
-        if self.phase == "check":
-            if np.linalg.norm(tgt - cube) > PUSH_TOLERANCE and self.strokes < 3:
-                self._plan_stroke(cube, tgt)
-                self._next("behind")
-            else:
-                self._next("retreat")
-            return np.zeros(3), NOOP
-        if self.phase == "retreat":
-            return self._go(at, [at[0], at[1], TABLE_Z + 0.12], SPEED, "rest"), NOOP
-        return self._rest(at)
+        along, across = float((self.hand[:2] - cube) @ d), float((self.hand[:2] - cube) @ normal)
+        low = self.hand[2] < height + 0.015
+        if low and -(CUBE / 2 + 0.065) < along < -CUBE / 2 + 0.012 and abs(across) < PUSH_CORRIDOR:
+            speed = min(PUSH_SPEED, max(0.004, 0.5 * remaining))
+            lateral = -np.clip(0.2 * across, -0.006, 0.006)  # steer the hand back onto the line
+            xy = speed * d + lateral * normal
+            return np.array([xy[0], xy[1], np.clip(height - at[2], -SLOW, SLOW)]), grip
+        above_start = np.linalg.norm(at[:2] - start) < 0.01 and np.linalg.norm(self.hand[:2] - start) < HAND_REACH
+        if above_start:
+            return _toward(at, [start[0], start[1], height], SLOW), grip
+        if self.hand[2] < TABLE_Z + PUSH_HOVER - 0.015:
+            return _toward(at, [at[0], at[1], TABLE_Z + PUSH_HOVER], SPEED), grip
+        return _toward(at, [start[0], start[1], TABLE_Z + PUSH_HOVER], SPEED), grip
