@@ -15,8 +15,8 @@ is held pointing down; every physics step the joint torques are (Khatib 1987)
     τ   = Jᵀ Λ a + qfrc_bias                                       (OSC + gravity/Coriolis)
     τ  += Nᵀ M (kp_null (q_home - q) - kd_null q̇)                  (posture in the nullspace)
 
-with ``Λ = (J M⁻¹ Jᵀ)⁻¹`` and ``N = I - M⁻¹ Jᵀ Λ J``, Kp = 150 and critical damping
-(robosuite's defaults). Position and orientation share the full 6x6 Λ (robosuite's
+with ``Λ = (J M⁻¹ Jᵀ)⁻¹`` and ``N = I - M⁻¹ Jᵀ Λ J``, Kp = ``robot.osc_kp`` (robosuite's default
+150) and critical damping. Position and orientation share the full 6x6 Λ (robosuite's
 ``uncouple_pos_ori=False``): with robosuite's default separate 3x3 blocks the hand sways by a few
 millimetres off the commanded line and overshoots; with the full Λ it follows the ideal
 critically damped response. The fingers are robosuite's position actuators: -1 opens, +1 closes,
@@ -307,7 +307,7 @@ class MujocoPanda(PandaSensing):
         self.body_names = list(body_names)
         model = world.model
         self.panda = PandaModel(model)
-        self.controller = OperationalSpaceController(model, self.panda)
+        self.controller = OperationalSpaceController(model, self.panda, kp=spec.osc_kp)
         self.substeps = max(1, int(round(self.control_dt / model.opt.timestep)))  # physics steps per action
         world.controllers.append(self.controller)
         robot_geoms = np.flatnonzero(np.asarray(world.geom_owner) == "robot")

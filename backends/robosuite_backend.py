@@ -234,7 +234,7 @@ def scene_object(name: str, body: Body, solref: list[float]):
 # ------------------------------------------------------------------------------------------------
 # the robosuite environment
 # ------------------------------------------------------------------------------------------------
-def osc_position_config(max_delta: float) -> dict:
+def osc_position_config(max_delta: float, kp: float = 150.0) -> dict:
     """robosuite's Panda composite controller with an ``OSC_POSITION`` arm taking metres.
 
     OSC_POSITION maps an input in [input_min, input_max] linearly onto a displacement in
@@ -248,7 +248,7 @@ def osc_position_config(max_delta: float) -> dict:
     config = load_composite_controller_config(robot="Panda")
     arm = load_part_controller_config(default_controller="OSC_POSITION")
     arm.update(input_max=max_delta, input_min=-max_delta, output_max=[max_delta] * 3, output_min=[-max_delta] * 3,
-               uncouple_pos_ori=False,
+               uncouple_pos_ori=False, kp=kp,
                gripper=config["body_parts"][ARM]["gripper"])
     config["body_parts"][ARM] = arm
     return config
@@ -271,7 +271,7 @@ class SceneEnv(ManipulationEnv):
         try:
             super().__init__(
                 robots=["Panda"] if robot else [],
-                controller_configs=osc_position_config(robot.max_delta * GOAL_LEAD_STEPS) if robot else None,
+                controller_configs=osc_position_config(robot.max_delta * GOAL_LEAD_STEPS, robot.osc_kp) if robot else None,
                 initialization_noise=None,
                 use_camera_obs=False, has_renderer=False, has_offscreen_renderer=False,
                 control_freq=robot.control_hz if robot else 20, horizon=2 ** 62, ignore_done=True,

@@ -6,6 +6,7 @@ on gloo for CPU and NCCL for CUDA; otherwise single-process. Only rank 0 writes 
 
 from __future__ import annotations
 
+import contextlib
 import os
 import random
 from dataclasses import dataclass
@@ -72,6 +73,23 @@ def to_device(batch: dict[str, Any], device: str, channels_last: bool = False) -
                 v = v.contiguous(memory_format=torch.channels_last)
         out[k] = v
     return out
+
+
+@contextlib.contextmanager
+def torch_threads(n: int):
+    """Run with ``n`` intra-op threads. One thread is fastest for the small batches of control on a
+    2-core machine, and makes closed-loop results the same whatever the worker count: float sums
+    split over a different number of threads differ in the last bit, and a closed loop amplifies it."""
+    import torch
+
+    saved = torch.get_num_threads()
+    if saved != n:
+        torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        if saved != n:
+            torch.set_num_threads(saved)
 
 
 def seed_everything(seed: int) -> None:

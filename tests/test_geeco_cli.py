@@ -166,6 +166,18 @@ def test_behaviour_cloning_on_demonstrations_beats_the_mean_command(tiny_pipelin
     assert grip_acc > majority + 0.02, (grip_acc, majority)  # seen: 0.999 vs 0.960 (no-op most of the time)
 
 
+def test_evaluation_gives_the_same_episodes_whatever_the_number_of_workers(tiny_pipeline, tmp_path):
+    out, _ = tiny_pipeline
+    code, _, err = call("eval", "geeco", "--run", str(out / "train"), "--workers", "2", "--out", str(tmp_path / "w2"))
+    assert code == 0, err
+
+    def episodes(run):
+        rows = [json.loads(line) for line in (run / "artifacts" / "episodes.jsonl").read_text().splitlines()]
+        return [{k: v for k, v in r.items() if k != "seconds"} for r in rows]
+
+    assert episodes(tmp_path / "w2") == episodes(out / "eval")  # one worker ran the pipeline's evaluation
+
+
 def test_evaluation_on_another_backend_and_on_a_transfer_scene(tiny_pipeline, tmp_path):
     out, _ = tiny_pipeline
     run = str(out / "train")

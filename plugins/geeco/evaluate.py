@@ -69,6 +69,13 @@ def episode_of(spec: dict[str, Any], scene: str, skill: str) -> S.Episode:
 
 
 def eval_unit(ctx: Context, unit: Unit) -> list[dict[str, Any]]:
+    from physint_cli.training import torch_threads
+
+    with torch_threads(1):  # the same episodes whatever --workers is (and fastest for one frame at a time)
+        return _eval_episodes(ctx, unit)
+
+
+def _eval_episodes(ctx: Context, unit: Unit) -> list[dict[str, Any]]:
     from .control import Policy, expert_target, run_episode
     from .train import load_controller
 

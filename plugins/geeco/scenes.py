@@ -33,7 +33,9 @@ EVAL_SCENES = ("clutter", "prisma", "nutoncone", "ballincup")
 SCENES = TRAIN_SCENES + EVAL_SCENES
 SKILLS = ("push", "pickplace")
 
-ROBOT = Robot(goal_mode="desired")  # commands are hand displacements on every backend
+# commands are hand displacements on every backend; a stiff OSC keeps the hand ~1.6 control steps
+# behind its goal (3.6 at robosuite's default): what the camera shows is close to what was commanded
+ROBOT = Robot(goal_mode="desired", osc_kp=600.0)
 TABLE_Z = ROBOT.table_height  # the table top; all heights below are above it
 CUBE = 0.05  # cube edge (m)
 CUBE_FRICTION = 0.5  # slides when pushed low (at 1.0 pushed cubes tip and wedge the fingers more often)

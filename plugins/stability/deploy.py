@@ -68,6 +68,7 @@ from physint_backends.randomize import PALETTE, orbit_cameras
 from physint_backends.spec import Camera, Scene, Texture
 from physint_cli.errors import BadInput, unknown
 from physint_cli.method import Context, Unit, unit_seed
+from physint_cli.training import torch_threads
 
 from .physics import SHAPES, StackObject, analyse, stack_up
 from .scenes import (CUBOID_EDGE, CUBOID_MAX_ASPECT, Scenario, default_textures, lighting_conditions, sample_cube,
@@ -370,21 +371,6 @@ class OracleScorer(Scorer):
         return score
 
 
-@contextlib.contextmanager
-def _torch_threads(n: int):
-    """Small batches on a shared 2-core machine: one intra-op thread is much faster."""
-    import torch
-
-    saved = torch.get_num_threads()
-    if saved != n:
-        torch.set_num_threads(n)
-    try:
-        yield
-    finally:
-        if saved != n:
-            torch.set_num_threads(saved)
-
-
 class _Stage:
     """One simulation holding a body for every object an episode may show, used only to render.
 
@@ -515,7 +501,7 @@ class PredictorScorer(Scorer):
     def stability(self, images: np.ndarray) -> float:
         from .evaluate import predict
 
-        with _torch_threads(self.threads):
+        with torch_threads(self.threads):
             p_unstable = predict(self.model, images, self.input_size)
         self.evaluations += 1
         return float(1.0 - np.mean(p_unstable))
