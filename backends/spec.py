@@ -309,7 +309,7 @@ class Robot:
     ``osc_kp`` is the stiffness of the operational-space controller on MuJoCo and robosuite
     (robosuite's default 150, critically damped): the hand follows a moving goal about 3.6 control
     steps behind; at 600 about 1.6 steps behind, settling within 3 steps of a stop. PyBullet drives
-    the joints by inverse kinematics and position control (about a step behind) and ignores it.
+    the joints by inverse kinematics and position control (0.6 steps behind) and ignores it.
     """
 
     name: str = "panda"

@@ -141,12 +141,23 @@ def test_a_cube_left_beside_its_pad_is_not_on_target():
 
 # -- the controllers (Section 6.3, Appendices 6.A-6.C) ---------------------------------------------
 
+def test_encoders_halve_their_maps_as_table_6a1_unless_told_to_keep_a_spatial_map():
+    from physint_plugins.geeco.model import Encoder
+
+    def side(size, min_side):
+        return Encoder(0.25, image_size=size, min_side=min_side)(torch.rand(1, 3, size, size)).shape[-1]
+
+    assert side(256, 1) == 2 and side(64, 1) == 1  # the thesis's strides: 2x2 at 256 px, 1x1 at 64 px
+    assert side(64, 4) == 4 and side(32, 4) == 4 and side(256, 4) == 4
+
+
 @pytest.mark.parametrize("variant", ["geeco-f", "geeco-d", "geeco-r", "e2evmc"])
-def test_a_chunk_answers_each_window_as_the_window_alone_would(variant):
+@pytest.mark.parametrize("min_side", [1, 4])
+def test_a_chunk_answers_each_window_as_the_window_alone_would(variant, min_side):
     from physint_plugins.geeco.model import Geeco
 
     torch.manual_seed(0)
-    model = Geeco(variant, image_size=32, width=0.25).eval()
+    model = Geeco(variant, image_size=32, width=0.25, min_side=min_side).eval()
     frames, joints, target = torch.rand(2, 7, 3, 32, 32), torch.randn(2, 7, 7), torch.rand(2, 3, 32, 32)
     with torch.no_grad():
         chunk = model(frames, joints, target)

@@ -40,10 +40,10 @@ def register_scenes(register):
 
 
 def _builder(variant: str):
-    def build(image_size: int = 64, width: float = 1.0, norm: bool = False):
+    def build(image_size: int = 64, width: float = 1.0, norm: bool = False, min_side: int = 1):
         from .model import Geeco
 
-        return Geeco(variant, image_size=image_size, width=width, norm=norm)
+        return Geeco(variant, image_size=image_size, width=width, norm=norm, min_side=min_side)
 
     return build
 

@@ -15,8 +15,9 @@ image I_T, and regresses the end-effector displacement u_dEE (3), gripper logits
 from zeros for every window, in training and in control, so a window is judged on its own; its
 output goes through FC(128) + ReLU into four linear heads (Table 6.A.2). The encoders are
 Table 6.A.1's eight 3x3 convolutions (32, 48, 64, 128, 192, 256, 256, 256 filters, stride 1
-then 2, ReLU), weights not shared; ``width`` scales the filters for the CPU presets and ``norm``
-adds group normalisation after each convolution (not in the thesis; it speeds up learning).
+then 2, ReLU), weights not shared; ``width`` scales the filters for the CPU presets, ``norm``
+adds group normalisation after each convolution (not in the thesis; it speeds up learning) and
+``min_side`` stops the halving at that map size (small frames keep a spatial map; see ``strides``).
 
 ``forward`` takes a chunk of T >= K consecutive frames and answers for each of its T - K + 1
 windows, so in training every frame is encoded once however many windows share it.
@@ -47,14 +48,14 @@ class Encoder(nn.Module):
     are the cheapest layers of the encoder.
     """
 
-    def __init__(self, width: float = 1.0, norm: bool = False):
+    def __init__(self, width: float = 1.0, norm: bool = False, image_size: int = 256, min_side: int = 1):
         super().__init__()
         layers: list[nn.Module] = []
         norms: list[nn.Module] = []
         channels = 3
-        for i, filters in enumerate(ENCODER_FILTERS):
+        for i, (filters, stride) in enumerate(zip(ENCODER_FILTERS, strides(image_size, min_side))):
             out = max(4, int(round(filters * width)))
-            layers.append(nn.Conv2d(channels, out, 3, stride=1 if i == 0 else 2, padding=1))
+            layers.append(nn.Conv2d(channels, out, 3, stride=stride, padding=1))
             norms.append(nn.GroupNorm(min(8, out // 4), out) if norm else nn.Identity())
             channels = out
         self.convs = nn.ModuleList(layers)
@@ -70,29 +71,42 @@ class Encoder(nn.Module):
         return x
 
 
-def encoder(width: float = 1.0, norm: bool = False) -> Encoder:
-    return Encoder(width, norm)
+def strides(size: int, min_side: int = 1) -> list[int]:
+    """Table 6.A.1's strides (1, then 2), except that a map is not halved below ``min_side``: at
+    256 px the last map is 2x2 (the thesis); at 64 px it would be 1x1, and ``min_side`` = 4 keeps
+    where things are in a 4x4 map instead of squeezing it into the channels."""
+    out, side = [], size
+    for i in range(len(ENCODER_FILTERS)):
+        stride = 1 if i == 0 or side <= min_side or (side + 1) // 2 < min_side else 2
+        out.append(stride)
+        side = (side + stride - 1) // stride
+    return out
 
 
-def feature_shape(size: int, width: float) -> tuple[int, int]:
+def encoder(width: float = 1.0, norm: bool = False, image_size: int = 256, min_side: int = 1) -> Encoder:
+    return Encoder(width, norm, image_size, min_side)
+
+
+def feature_shape(size: int, width: float, min_side: int = 1) -> tuple[int, int]:
     """(channels, side) of an encoder's output for ``size`` x ``size`` input."""
     side = size
-    for i in range(1, len(ENCODER_FILTERS)):
-        side = (side + 1) // 2
+    for stride in strides(size, min_side):
+        side = (side + stride - 1) // stride
     return max(4, int(round(ENCODER_FILTERS[-1] * width))), side
 
 
 class Geeco(nn.Module):
     def __init__(self, variant: str = "geeco-f", image_size: int = 64, width: float = 1.0, buffer: int = BUFFER,
-                 norm: bool = False):
+                 norm: bool = False, min_side: int = 1):
         super().__init__()
         if variant not in VARIANTS:
             raise ValueError(f"variant {variant!r} is not known; valid: {', '.join(VARIANTS)}")
         self.variant, self.image_size, self.width, self.buffer = variant, image_size, width, buffer
-        self.obs = encoder(width, norm)  # psi_OBS
-        self.dyn = encoder(width, norm) if variant == "geeco-f" else None  # psi_DYN
-        self.diff = encoder(width, norm) if variant in ("geeco-f", "geeco-d") else None  # psi_DIFF
-        channels, side = feature_shape(image_size, width)
+        enc = dict(width=width, norm=norm, image_size=image_size, min_side=min_side)
+        self.obs = encoder(**enc)  # psi_OBS
+        self.dyn = encoder(**enc) if variant == "geeco-f" else None  # psi_DYN
+        self.diff = encoder(**enc) if variant in ("geeco-f", "geeco-d") else None  # psi_DIFF
+        channels, side = feature_shape(image_size, width, min_side)
         maps = {"geeco-f": 3, "geeco-d": 2, "geeco-r": 2, "e2evmc": 1}[variant]
         self.state_size = (maps * channels + JOINTS) * side * side
         self.lstm = nn.LSTM(self.state_size, HIDDEN, batch_first=True)

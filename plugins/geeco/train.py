@@ -25,11 +25,11 @@ from .model import BUFFER
 FIELDS = ["rgb", "joints", "ee", "obj", "dee", "grip", "layout", "task", "seed"]
 
 
-def build_model(name: str, image_size: int, width: float, norm: bool = False):
+def build_model(name: str, image_size: int, width: float, norm: bool = False, min_side: int = 1):
     """A registered GEECO model (``register_models``)."""
     from physint_cli.training import registered_model
 
-    kwargs = {"image_size": int(image_size), "width": float(width), "norm": bool(norm)}
+    kwargs = {"image_size": int(image_size), "width": float(width), "norm": bool(norm), "min_side": int(min_side)}
     return registered_model("geeco", name).build(**kwargs), kwargs
 
 
@@ -149,9 +149,11 @@ def train(ctx: Context) -> dict[str, Any]:
     for key in ("epochs", "batch_size"):
         if getattr(cfg, key) < 1:
             raise BadInput(f"train.{key} must be >= 1, got {getattr(cfg, key)}")
+    if cfg.min_side < 1:
+        raise BadInput(f"train.min_side must be >= 1, got {cfg.min_side}")
     if cfg.width <= 0 or cfg.lr <= 0 or cfg.aux_weight < 0 or cfg.val_episodes < 0:
         raise BadInput("train.width and train.lr must be > 0, train.aux_weight and train.val_episodes >= 0")
-    model, kwargs = build_model(name, data_cfg["resolution"], cfg.width, cfg.norm)
+    model, kwargs = build_model(name, data_cfg["resolution"], cfg.width, cfg.norm, cfg.min_side)
     train_demos, val_demos = load_split(ctx.data, "train"), load_split(ctx.data, "val")
     train_set, val_set = Chunks(train_demos, cfg.chunk), Chunks(val_demos, cfg.chunk)
     ctx.log(f"training {name} on {len(train_demos['rgb'])} {skill} demonstrations of {scene} "
