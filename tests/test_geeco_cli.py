@@ -212,7 +212,8 @@ def test_bad_training_settings_exit_2(tiny_pipeline, tmp_path):
     for setting, message in (("train.width=0", "train.width and train.lr must be > 0"),
                              ("train.chunk=0", "train.chunk must be in [1, 100]"),
                              ("train.epochs=0", "train.epochs must be >= 1"),
-                             ("train.min_side=0", "train.min_side must be >= 1")):
+                             ("train.min_side=0", "train.min_side must be >= 1"),
+                             ("train.schedule=step", "train.schedule must be one of cosine, constant")):
         code, _, err = call("train", "geeco", "--preset", "tiny", "--data", str(out / "dataset"), "--set", setting,
                             "--out", str(tmp_path / "r"))
         assert code == 2 and message in err, (setting, err)

@@ -33,6 +33,8 @@ class TrainConfig:
     batch_size: int = field_(16, "chunks per batch")
     chunk: int = field_(8, "consecutive windows per chunk (they share frames: each is encoded once)")
     lr: float = field_(5e-4, "Adam learning rate (thesis: 1e-4)")
+    schedule: str = field_("cosine", "learning rate over the epochs: cosine (one warm-up epoch, then a half cosine "
+                                     "to 0) or constant (the thesis)")
     aux_weight: float = field_(1.0, "lambda of Eq. 6.3: weight of the auxiliary position losses (thesis: 0 or 1)")
     width: float = field_(0.5, "encoder filter multiplier (1.0: Table 6.A.1)")
     norm: bool = field_(True, "group normalisation after each convolution (not in Table 6.A.1; the plain "
@@ -70,9 +72,8 @@ PRESETS = {
              "train.width": 0.25, "train.val_episodes": 1, "eval.episodes": 2, "eval.steps": 60, "eval.per_unit": 1,
              "deploy.steps": 40},
     "small": {},
-    "paper": {"data.demos": 4000, "data.resolution": 256, "data.per_shard": 25, "train.epochs": 40,
-              "data.action_noise": 0.0,
-              "train.batch_size": 32, "train.chunk": 1, "train.lr": 1e-4, "train.width": 1.0, "train.norm": False,
-              "train.min_side": 1, "train.val_episodes": 50,
-              "eval.episodes": 1000},
+    "paper": {"data.demos": 4000, "data.resolution": 256, "data.per_shard": 25, "data.action_noise": 0.0,
+              "train.epochs": 40, "train.batch_size": 32, "train.chunk": 1, "train.lr": 1e-4,
+              "train.schedule": "constant", "train.width": 1.0, "train.norm": False, "train.min_side": 1,
+              "train.val_episodes": 50, "eval.episodes": 1000},
 }

@@ -22,6 +22,7 @@ from . import scenes as S
 from .control import DEE_SCALE, scale_positions
 from .model import BUFFER
 
+SCHEDULES = ("cosine", "constant")
 FIELDS = ["rgb", "joints", "ee", "obj", "dee", "grip", "layout", "task", "seed"]
 
 
@@ -135,7 +136,7 @@ class ValidationLoss:
 def train(ctx: Context) -> dict[str, Any]:
     from physint_cli.datasets import read_manifest
     from physint_cli.runs import Run
-    from physint_cli.training import fit
+    from physint_cli.training import adamw_cosine, fit
 
     from .model import geeco_loss
 
@@ -149,6 +150,8 @@ def train(ctx: Context) -> dict[str, Any]:
     for key in ("epochs", "batch_size"):
         if getattr(cfg, key) < 1:
             raise BadInput(f"train.{key} must be >= 1, got {getattr(cfg, key)}")
+    if cfg.schedule not in SCHEDULES:
+        raise BadInput(f"train.schedule must be one of {', '.join(SCHEDULES)}, got {cfg.schedule!r}")
     if cfg.min_side < 1:
         raise BadInput(f"train.min_side must be >= 1, got {cfg.min_side}")
     if cfg.width <= 0 or cfg.lr <= 0 or cfg.aux_weight < 0 or cfg.val_episodes < 0:
@@ -167,8 +170,13 @@ def train(ctx: Context) -> dict[str, Any]:
         metric = ClosedLoopProgress(ctx, val_demos, skill, cfg.val_episodes, ctx.config.eval.steps)
     else:
         metric = ValidationLoss(cfg.aux_weight)
+    make_optimizer = None
+    if cfg.schedule == "cosine":
+        def make_optimizer(net):
+            return adamw_cosine(net, lr=cfg.lr, weight_decay=0.0, epochs=cfg.epochs)  # Adam, decaying rate
+
     result = fit(model, train_set, val_set, run=Run(ctx.run), epochs=cfg.epochs, batch_size=cfg.batch_size,
-                 lr=cfg.lr, loss_fn=loss_fn, metric_fn=metric, device=ctx.device, seed=ctx.seed,
+                 lr=cfg.lr, loss_fn=loss_fn, metric_fn=metric, make_optimizer=make_optimizer, device=ctx.device, seed=ctx.seed,
                  resume=bool(ctx.options.get("resume")), log=ctx.log, higher_is_better=True,
                  precision=cfg.precision, batch_transform=to_float_frames,
                  meta={"method": "geeco", "model": name, "kwargs": kwargs, "scene": scene, "skill": skill,

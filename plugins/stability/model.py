@@ -24,6 +24,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from physint_cli.training import adamw_cosine  # noqa: F401  (the stability presets' solver; it lives in the core)
+
 __all__ = ["MODELS", "build", "compact_cnn", "alexnet", "inception_v4", "rmsprop_for", "logistic_loss",
            "n_params", "Normalize", "adamw_cosine"]
 
@@ -387,25 +389,6 @@ def rmsprop_for(model: nn.Module, paper: bool = True, *, lr: float | None = None
     sched = torch.optim.lr_scheduler.StepLR(opt, step_size=s["epochs_per_decay"] * max(1, int(steps_per_epoch)),
                                             gamma=s["decay_rate"])
     return opt, sched
-
-
-def adamw_cosine(model: nn.Module, *, lr: float, weight_decay: float, epochs: int,
-                 warmup_epochs: int = 1) -> tuple[torch.optim.AdamW, torch.optim.lr_scheduler.LambdaLR]:
-    """AdamW and a per-epoch schedule: a linear warm-up over ``warmup_epochs``, then the learning
-    rate follows a half cosine from ``lr`` down to 0, which it reaches as the last epoch ends
-    (call ``scheduler.step()`` once per epoch). The solver of the CPU presets."""
-    import math
-
-    opt = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=weight_decay)
-    epochs, warm = max(1, int(epochs)), max(0, int(warmup_epochs))
-
-    def factor(epoch: int) -> float:
-        if epoch < warm:
-            return (epoch + 1) / (warm + 1)
-        t = (epoch - warm) / max(1, epochs - warm)
-        return 0.5 * (1 + math.cos(math.pi * min(t, 1.0)))
-
-    return opt, torch.optim.lr_scheduler.LambdaLR(opt, factor)
 
 
 def logistic_loss(logits: torch.Tensor, labels: torch.Tensor, reduction: str = "mean") -> torch.Tensor:
