@@ -148,7 +148,7 @@ def test_encoders_halve_their_maps_as_table_6a1_unless_told_to_keep_a_spatial_ma
         return Encoder(0.25, image_size=size, min_side=min_side)(torch.rand(1, 3, size, size)).shape[-1]
 
     assert side(256, 1) == 2 and side(64, 1) == 1  # the thesis's strides: 2x2 at 256 px, 1x1 at 64 px
-    assert side(64, 4) == 4 and side(32, 4) == 4 and side(256, 4) == 4
+    assert side(64, 4) == 4 and side(32, 4) == 4 and side(256, 4) == 4  # train.min_side
 
 
 @pytest.mark.parametrize("variant", ["geeco-f", "geeco-d", "geeco-r", "e2evmc"])

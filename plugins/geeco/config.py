@@ -39,8 +39,8 @@ class TrainConfig:
     width: float = field_(0.5, "encoder filter multiplier (1.0: Table 6.A.1)")
     norm: bool = field_(True, "group normalisation after each convolution (not in Table 6.A.1; the plain "
                               "encoders learned the commands slower, see docs/geeco.md)")
-    min_side: int = field_(4, "the encoders stop halving their maps at this side (1: Table 6.A.1's strides, "
-                              "whose 2x2 maps at 256 px become 1x1 at 64 px)")
+    min_side: int = field_(1, "the encoders stop halving their maps at this side (1: Table 6.A.1's strides, "
+                              "whose 2x2 maps at 256 px become 1x1 at 64 px; 4 pushed worse, docs/geeco.md)")
     val_episodes: int = field_(12, "closed-loop validation episodes after each epoch picking the best checkpoint "
                                     "(0: validation loss instead)")
     precision: str = field_("auto", "fp32, bf16, or auto (bf16 where the hardware has it natively)")
@@ -74,6 +74,6 @@ PRESETS = {
     "small": {},
     "paper": {"data.demos": 4000, "data.resolution": 256, "data.per_shard": 25, "data.action_noise": 0.0,
               "train.epochs": 40, "train.batch_size": 32, "train.chunk": 1, "train.lr": 1e-4,
-              "train.schedule": "constant", "train.width": 1.0, "train.norm": False, "train.min_side": 1,
+              "train.schedule": "constant", "train.width": 1.0, "train.norm": False,
               "train.val_episodes": 50, "eval.episodes": 1000},
 }
