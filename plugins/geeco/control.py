@@ -135,4 +135,5 @@ def run_episode(sim, ep: S.Episode, policy: Policy, target_rgb: np.ndarray | Non
             "steps": step + 1, "seconds": seconds,
             # how far the object is from its target's centre (m), at the start and at the end
             "start_distance": float(np.linalg.norm(ep.xy(ep.object) - ep.xy(ep.target))),
-            "final_distance": float(np.linalg.norm(sim.get_pose(ep.object)[0][:2] - ep.xy(ep.target)))}
+            "final_distance": float(np.linalg.norm(sim.get_pose(ep.object)[0][:2] - ep.xy(ep.target))),
+            "final_xy": [round(float(v), 4) for v in sim.get_pose(ep.object)[0][:2]]}  # where it ended (m)
