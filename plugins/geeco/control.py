@@ -131,9 +131,10 @@ def run_episode(sim, ep: S.Episode, policy: Policy, target_rgb: np.ndarray | Non
             pick = bottom > LIFTED
     seconds = time.perf_counter() - t0
     success = (not diverged) and on_target(ep, sim)
+    final_xy = sim.get_pose(ep.object)[0][:2]
     return {"reach": bool(reach), "pick": bool(pick), "success": bool(success), "diverged": diverged,
             "steps": step + 1, "seconds": seconds,
             # how far the object is from its target's centre (m), at the start and at the end
             "start_distance": float(np.linalg.norm(ep.xy(ep.object) - ep.xy(ep.target))),
-            "final_distance": float(np.linalg.norm(sim.get_pose(ep.object)[0][:2] - ep.xy(ep.target))),
-            "final_xy": [round(float(v), 4) for v in sim.get_pose(ep.object)[0][:2]]}  # where it ended (m)
+            "final_distance": float(np.linalg.norm(final_xy - ep.xy(ep.target))),
+            "final_xy": [round(float(v), 4) for v in final_xy]}  # where the object ended (m)

@@ -10,9 +10,10 @@ It sees the simulator's true state (privileged) and follows the object as it mov
   state (:meth:`Expert._push`), so the demonstrations show one consistent response per state.
 
 Plans run on the commanded hand position (the robot's goal in ``goal_mode="desired"``); where
-contact matters (grasping, placing, starting a push) a phase also waits for the hand to catch up. Every plan ends with the hand parked at ``REST_EE``, out of the
-way, so the demonstration's last frame is a clean target image. Commands are end-effector
-displacements of at most ``SPEED`` per step and a gripper command in {-1 open, 0 no-op, +1 close}.
+contact matters (grasping, placing, starting a push) a phase also waits for the hand to catch up.
+Every plan ends with the hand parked at ``REST_EE``, out of the way, so the demonstration's last
+frame is a clean target image. Commands are end-effector displacements of at most ``SPEED`` per
+step and a gripper command in {-1 open, 0 no-op, +1 close}.
 """
 
 from __future__ import annotations
