@@ -12,8 +12,10 @@ lower two with a model they built themselves:
   the model from a scene (:func:`build_spec`), validates every argument and delegates.
 
 Physics defaults: the scene's timestep and gravity, the ``implicitfast`` integrator, elliptic
-friction cones with ``condim=3`` (sliding friction) and stiff contacts (time constant 2.5
-physics steps, see :func:`contact_solref`) so that marginally stable stacks stand.
+friction cones with ``condim=3`` (sliding friction; 6 for curved bodies, which also resist
+rolling and spinning, and the noslip solver when the scene asks for hard friction, see
+:func:`configure_contacts`) and stiff contacts (time constant 2.5 physics steps, see
+:func:`contact_solref`) so that marginally stable stacks stand.
 Rendering defaults follow the measurements in DESIGN.md: no shadow maps, no multisampling, no
 reflections (30x faster on Mesa's software rasteriser).
 """
@@ -47,6 +49,9 @@ MIN_OFFSCREEN = 640  # offscreen framebuffer is at least this big (pixels)
 CONTACT_STEPS = 2.5  # contact time constant in physics steps (see contact_solref)
 FREEZE_SOLIMP = [0.99, 0.99, 0.001, 0.5, 2.0]  # stiff weld for frozen bodies (sags ~0.05 mm under gravity)
 TORSION, ROLLING = 0.005, 0.0001  # MuJoCo's default torsional / rolling friction coefficients
+CURVED_GEOMS = (mujoco.mjtGeom.mjGEOM_SPHERE, mujoco.mjtGeom.mjGEOM_CAPSULE, mujoco.mjtGeom.mjGEOM_ELLIPSOID,
+                mujoco.mjtGeom.mjGEOM_CYLINDER, mujoco.mjtGeom.mjGEOM_MESH)
+NOSLIP_ITERATIONS = 2  # noslip solver passes for Scene.hard_friction (5 measured no better)
 
 
 # ------------------------------------------------------------------------------------------------
@@ -116,6 +121,23 @@ def _texture_material(spec: mujoco.MjSpec, name: str, texture: Texture, rgba, *,
     mat.texuniform = False  # the image is repeated `repeat` times over the whole geom / ground
     mat.texrepeat = list(texture.repeat)
     return name
+
+
+def configure_contacts(world: "MujocoWorld", scene: Scene) -> None:
+    """Rolling and torsional friction for the scene's curved bodies, and hard friction on request.
+
+    A curved scene geom (sphere, cylinder, mesh) gets ``condim`` 6, so that its contacts resist
+    rolling and spinning with the coefficients ROLLING and TORSION, as its body does on PyBullet;
+    flat-faced bodies keep ``condim`` 3 (several contact points already resist turning). With
+    ``scene.hard_friction`` the noslip solver removes the creep that soft contacts allow: without it
+    a sphere rolls off a balanced plank that the contacts have tilted by 0.05 degrees.
+    """
+    model = world.model
+    for geoms in world.body_geoms:
+        for g in geoms:
+            if model.geom_type[g] in CURVED_GEOMS:
+                model.geom_condim[g] = 6
+    model.opt.noslip_iterations = NOSLIP_ITERATIONS if scene.hard_friction else 0
 
 
 def contact_solref(timestep: float) -> list[float]:
@@ -667,6 +689,7 @@ class MujocoSimulation(Simulation):
         names = [b.name for b in scene.bodies]
         geom_label, geom_owner = label_geoms(model, body_ids, names, built)
         world = MujocoWorld(model, data, body_ids, geom_label, geom_owner)
+        configure_contacts(world, scene)
         robot = None
         if scene.robot is not None:
             from .mujoco_panda import MujocoPanda

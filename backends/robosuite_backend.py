@@ -91,7 +91,7 @@ from robosuite.utils.mjcf_utils import new_element, new_joint  # noqa: E402
 
 from .mujoco_backend import (  # noqa: E402
     FREEZE_SOLIMP, ROBOT, ROLLING, TORSION, Z_FAR, Z_NEAR, MujocoSimulation, MujocoWorld, cube_faces, camera_quat,
-    contact_solref, label_geoms,
+    configure_contacts, contact_solref, label_geoms,
 )
 from .mujoco_panda import DARK_RGBA, EE_DOWN, FINGER_OPEN, LINK_RGBA, PandaSensing, solve_ik  # noqa: E402
 
@@ -536,6 +536,7 @@ class RobosuiteSimulation(MujocoSimulation):
             if scene.robot is not None:
                 paint_table(model, table, scene.robot.table_rgba)
             world = MujocoWorld(model, data, body_ids, geom_label, geom_owner)
+            configure_contacts(world, scene)
             robot = None
             if scene.robot is not None:
                 robot = RobosuiteRobot(world, env.robots[0], scene.robot, names,

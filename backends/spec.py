@@ -352,6 +352,10 @@ class Scene:
     gravity: tuple[float, float, float] = (0.0, 0.0, -9.81)
     timestep: float = 0.002  # physics step in seconds
     background: tuple[float, float, float] = (0.72, 0.78, 0.86)  # colour of the sky behind everything
+    # Friction holds resting bodies exactly. MuJoCo's contacts are soft: without this a body under a
+    # small tangential load creeps (a sphere rolls off a plank that the contacts tilt by 0.05 deg)
+    # and the backend runs its noslip solver to stop it; Bullet's friction is already hard.
+    hard_friction: bool = False
 
     def __post_init__(self) -> None:
         self.gravity = _finite_vector(self.gravity, 3, "scene gravity")  # type: ignore[assignment]

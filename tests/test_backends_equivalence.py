@@ -66,6 +66,32 @@ def test_block_on_curved_surface_falls(backend, support):
         assert sim.get_pose("block")[0][2] < top_z - CUBE / 3
 
 
+def sphere_on_tilted_plank(hard_friction: bool, tilt_degrees: float = 0.05) -> Scene:
+    """A 3 cm sphere resting on a fixed plank tilted by ``tilt_degrees`` about the y axis."""
+    a = math.radians(tilt_degrees) / 2
+    plank = Body.box("plank", (0.3, 0.1, 0.02), pos=(0, 0, 0.05), quat=(math.cos(a), 0.0, math.sin(a), 0.0), static=True)
+    ball = Body.sphere("ball", 0.03, pos=(0, 0, 0.06 + 0.03 - 1e-4))
+    return Scene(bodies=[plank, ball], hard_friction=hard_friction)
+
+
+def test_hard_friction_keeps_a_sphere_on_a_slightly_tilted_plank(backend):
+    # rolling friction (1e-4 m) holds a 3 cm sphere up to ~0.2 deg; soft contacts must not creep
+    with pb.make(backend, sphere_on_tilted_plank(hard_friction=True)) as sim:
+        sim.advance(0.1)
+        start = sim.get_pose("ball")[0]
+        sim.advance(2.0)
+        assert displacement(sim, "ball", start) < 0.001
+
+
+def test_without_hard_friction_mujoco_lets_the_sphere_creep():
+    # the reason for Scene.hard_friction: MuJoCo's soft contacts alone let it roll ~1 cm in 2 s
+    with pb.make("mujoco", sphere_on_tilted_plank(hard_friction=False)) as sim:
+        sim.advance(0.1)
+        start = sim.get_pose("ball")[0]
+        sim.advance(2.0)
+        assert displacement(sim, "ball", start) > 0.003
+
+
 def test_dropped_sphere_time_to_ground(backend):
     h, r = 1.0, 0.02
     scene = Scene(bodies=[Body.sphere("ball", r, pos=(0, 0, h + r))], timestep=0.001)

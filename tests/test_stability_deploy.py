@@ -86,6 +86,12 @@ def test_oracle_counterweight_makes_the_t_stand_more_often_than_random_placement
     assert oracle > random
 
 
+def test_a_sphere_placed_where_lemma_1_balances_the_t_stays_there():
+    # the sphere used to roll off the plank (soft contacts tilt it 0.05 deg; the scene's hard friction holds it)
+    results = _balance(make_ctx(task="balance", sets=["deploy.anneal_steps=30"]), "oracle", "sphere", 4)
+    assert all(r["success"] for r in results)
+
+
 def test_the_t_is_a_vcom_that_a_counterweight_can_fix():
     rng = np.random.default_rng(3)
     w = D.counterweight("sphere", rng)

@@ -567,7 +567,9 @@ def to_scene(scenario: Scenario, rng: np.random.Generator | None = None, cameras
                              lookat=lookat, fovy=fovy, width=resolution, height_px=resolution, start=start)
     if randomise and camera_jitter > 0:
         cams = [jitter_camera(c, rng, camera_jitter, camera_jitter / 2, 1.0) for c in cams]
-    return Scene(bodies=bodies, cameras=cams, lights=list(lights), ground=ground, timestep=timestep)
+    # hard friction: a stack that Lemma 1 calls stable must not creep apart on soft contacts
+    return Scene(bodies=bodies, cameras=cams, lights=list(lights), ground=ground, timestep=timestep,
+                 hard_friction=True)
 
 
 # --------------------------------------------------------------------------------------------
