@@ -34,6 +34,8 @@ PUSH_HEIGHT = 0.017  # the hand (between the fingertips) while pushing: low on t
 HOVER = 0.13  # carrying height above the table
 HAND_TOLERANCE = 0.012  # a phase ends when the hand is this close to where it was sent
 HAND_REACH = 0.03  # pushing: the hand is over the start when this close (some backends hold it ~1.5 cm short at the far edge)
+GRIP_SETTLED = 0.001  # m per step: the fingers have closed on the object when their opening changes less
+GRASP_STEPS = 20  # at most this many steps closing the fingers
 OPEN, NOOP, CLOSE = -1, 0, 1
 SETTLING = ("grasp", "release", "retreat", "rest")  # phases the demonstration noise leaves alone
 
@@ -84,6 +86,7 @@ class Expert:
         self.done = False
         self.goal: np.ndarray | None = None  # where the commands so far put the hand (robot goal_mode "desired")
         self._arrived = 0
+        self._opening: float | None = None  # the fingers' opening at the last grasp step
 
     def _next(self, phase: str) -> None:
         self.phase, self.steps_in_phase = phase, 0
@@ -137,8 +140,12 @@ class Expert:
             return self._go(at, [obj[0], obj[1], hover], SPEED, "descend"), OPEN
         if self.phase == "descend":  # wait two steps at the bottom for the hand to catch up
             return self._go(at, [obj[0], obj[1], obj[2] + 0.003], SLOW, "grasp", wait=1), OPEN
-        if self.phase == "grasp":
-            if self.steps_in_phase >= 5:
+        if self.phase == "grasp":  # close until the fingers stop on the object (robosuite's close slower)
+            opening = sim.robot.state().gripper_opening
+            closed = self._opening is not None and abs(opening - self._opening) < GRIP_SETTLED
+            self._opening = opening
+            if (self.steps_in_phase >= 5 and closed) or self.steps_in_phase >= GRASP_STEPS:
+                self._opening = None
                 self._next("lift")
             return np.zeros(3), CLOSE
         if self.phase == "lift":

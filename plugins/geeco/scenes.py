@@ -59,8 +59,8 @@ CLUTTER_OBJECTS = 5
 
 # object geometry: half height, the grasp point's offset from the object's centre, and its radius
 # (for spacing); nut: a hexagonal ring grasped at one of its walls
-NUT_RADIUS, NUT_WALL, NUT_HEIGHT = 0.035, 0.012, 0.025
-CONE_RADIUS, CONE_HEIGHT = 0.026, 0.07
+NUT_RADIUS, NUT_WALL, NUT_HEIGHT = 0.045, 0.012, 0.025
+CONE_RADIUS, CONE_HEIGHT = 0.032, 0.07
 BALL_RADIUS = 0.025
 CUP_RADIUS, CUP_HEIGHT = 0.05, 0.06
 
