@@ -57,7 +57,6 @@ MESH_MARGIN = 1e-3  # m: Bullet's collision margin around convex hulls (boxes an
 # distance itself rather than reading Bullet's contact manifolds, which miss resting contacts at
 # exactly zero distance and lag behind poses set by hand.
 TOUCH_DISTANCE = 1e-3
-GROUND_SLAB = 0.002  # thickness of the ground's visual slab (m); its top face is at z = 0
 
 
 # -- small pose helpers (spec quaternions are w, x, y, z; Bullet's are x, y, z, w) -------------
@@ -311,16 +310,24 @@ class PybulletSimulation(Simulation):
         self._background = np.round(np.asarray(scene.background) * 255).astype(np.uint8)
 
     def _add_ground(self) -> int:
-        """An infinite collision plane at z = 0 with a visible slab of the ground's size and look."""
+        """An infinite collision plane at z = 0, drawn as a square of the ground's size and look.
+
+        The square is a mesh whose texture coordinates run to ``texture.repeat``, so the renderer
+        tiles the texture as MuJoCo tiles its plane's (a box slab mapped a pre-tiled image about 4x
+        too coarse: ``test_ground_texture_tiles_at_the_same_scale``).
+        """
         ground, p = self.scene.ground, self._p
         col = p.createCollisionShape(pybullet.GEOM_PLANE)
         half = ground.size
-        vis = p.createVisualShape(pybullet.GEOM_BOX, halfExtents=[half, half, GROUND_SLAB / 2],
-                                  visualFramePosition=[0, 0, -GROUND_SLAB / 2], rgbaColor=list(ground.rgba))
+        ru, rv = ground.texture.repeat if ground.texture is not None else (1.0, 1.0)
+        vis = p.createVisualShape(pybullet.GEOM_MESH, vertices=[[-half, -half, 0], [half, -half, 0], [half, half, 0],
+                                                                [-half, half, 0]],
+                                  indices=[0, 1, 2, 0, 2, 3], uvs=[[0, 0], [ru, 0], [ru, rv], [0, rv]],
+                                  normals=[[0, 0, 1]] * 4, rgbaColor=list(ground.rgba))
         uid = p.createMultiBody(0.0, col, vis, [0, 0, 0])
         p.changeDynamics(uid, -1, lateralFriction=math.sqrt(ground.friction), frictionAnchor=1)
         if ground.texture is not None:
-            p.changeVisualShape(uid, -1, textureUniqueId=self._texture(ground.texture, tile=True))
+            p.changeVisualShape(uid, -1, textureUniqueId=self._texture(ground.texture))
         self._names[uid] = GROUND_NAME
         return uid
 
@@ -416,14 +423,9 @@ class PybulletSimulation(Simulation):
             self._files[digest] = path
         return path
 
-    def _texture(self, texture: Texture, tile: bool = False) -> int:
-        """Bullet texture id of a spec texture (tiled ``repeat`` times when ``tile``)."""
+    def _texture(self, texture: Texture) -> int:
+        """Bullet texture id of a spec texture."""
         image = texture.image
-        if tile:  # the ground slab maps its texture once over the whole face: tile it here
-            reps = [max(1, int(round(r))) for r in texture.repeat]
-            image = np.tile(image, (reps[1], reps[0], 1))
-            while image.shape[0] * image.shape[1] > 4096 * 4096:  # keep huge tilings affordable
-                image = image[::2, ::2]
 
         def write(path: str) -> None:
             from PIL import Image

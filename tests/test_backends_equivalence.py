@@ -281,3 +281,18 @@ def test_six_block_stack_stands(backend):
         sim.advance(2.0)
         top = sim.get_pose("b5")[0]
         assert abs(top[2] - CUBE * 5.5) < 0.005 and abs(top[0]) < 0.005
+
+
+def test_ground_texture_tiles_at_the_same_scale(backend):
+    """A checker texture repeated 20 times over a 4 m ground: squares of 0.1 m on every backend
+    (PyBullet once drew them about 4x larger, so its renders looked unlike MuJoCo's)."""
+    checker = np.zeros((64, 64, 3), np.uint8)
+    checker[:32, :32] = checker[32:, 32:] = 255
+    cam = Camera("top", pos=(0.1, 0.05, 1.0), lookat=(0.1, 0.05, 0.0), up=(0, 1, 0), fovy=60, width=128, height=128)
+    scene = Scene(ground=pb.Ground(texture=pb.Texture(checker, repeat=(20.0, 20.0)), size=2.0), cameras=[cam])
+    with pb.make(backend, scene) as sim:
+        rgb = sim.render("top").rgb
+    # the view is 2 tan(30 deg) = 1.15 m wide: 11.5 squares, so 11 or 12 black/white edges per row and column
+    for line in (rgb[64, :, 0], rgb[:, 64, 0]):
+        edges = int(np.abs(np.diff((line > 128).astype(int))).sum())
+        assert 10 <= edges <= 13, edges
