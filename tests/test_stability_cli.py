@@ -71,6 +71,9 @@ def test_train_eval_deploy_tiny(tiny_dataset, tmp_path):
     assert code == 2 and "unknown model" in err
     code, _, err = call("deploy", "stability", "--run", str(tmp_path / "run"), "--task", "stack", "--set", "deploy.pool=0")
     assert code == 2 and "deploy.pool" in err  # an empty object pool
+    code, _, err = call("deploy", "stability", "--run", str(tmp_path / "run"), "--task", "stackability", "--set",
+                        "deploy.stackability_pool=1")
+    assert code == 2 and "deploy.stackability_pool" in err
     code, _, err = call("deploy", "stability", "--run", str(tmp_path / "run"), "--set", "deploy.agents=oracle,robot")
     assert code == 2 and "robot" in err and "predictor" in err
 

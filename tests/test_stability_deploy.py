@@ -174,7 +174,7 @@ def test_deploy_rejects_an_unknown_task():
 
 def test_deploy_runs_every_task_with_a_fake_predictor_and_writes_its_artifacts(tmp_path, monkeypatch):
     monkeypatch.setattr(D, "_load_predictor", lambda ctx: (FakePredictor().eval(), 32))
-    sets = ["deploy.pool=3", "deploy.anneal_steps=3", "deploy.cameras=2"]
+    sets = ["deploy.pool=3", "deploy.stackability_pool=3", "deploy.anneal_steps=3", "deploy.cameras=2"]
     stack = D.deploy(make_ctx(tmp_path, "stack", sets, agents="predictor,oracle,random"))
     assert set(stack["scenarios"]) == {"cubes", "cuboids", "ccs"}
     for per in stack["scenarios"].values():
@@ -186,6 +186,7 @@ def test_deploy_runs_every_task_with_a_fake_predictor_and_writes_its_artifacts(t
     ranked = D.deploy(make_ctx(tmp_path, "stackability", sets, agents="predictor,oracle"))
     rows = ranked["agents"]["predictor"]["ranking"]
     assert rows == sorted(rows, key=lambda r: -r["score"]) and len(rows) == ranked["bases"]
+    assert ranked["objects"] == 3
     json.dumps([stack, balance, ranked])  # JSON-serialisable metrics
     files = {p.name for p in (tmp_path / "artifacts").iterdir()}
     assert {"stack_heights.png", "balance_success.png", "stackability_area.png", "stackability_strip.png",

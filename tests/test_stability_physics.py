@@ -194,6 +194,21 @@ def test_simulator_agrees_with_hand_made_stacks(backend):
             assert out.max_displacement > 0.02 and 0 < out.fall_time < 1.0
 
 
+def test_stopping_at_the_first_fall_decides_the_same_outcome():
+    """The dataset stops each simulation at the first fall: stability and first_to_fall stay those of the full run."""
+    for objects in (counterbalanced_stack(), counterbalanced_stack()[:2], [cube(), cube(), cube(x=0.04)]):
+        objects = physics.stack_up(objects)
+        scenario = scenes.Scenario("cubes", "stable", objects, analyse(objects), 0)
+        outcomes = []
+        for early in (False, True):
+            with pb.make("mujoco", scenes.to_scene(scenario, np.random.default_rng(0), cameras=0)) as sim:
+                outcome = scenes.simulate(sim, scenario, 2.0, stop_early=early)
+                outcomes.append((outcome, sim.time))
+        (full, t_full), (early, t_early) = outcomes
+        assert (early.stable, early.first_to_fall, early.fall_time) == (full.stable, full.first_to_fall, full.fall_time)
+        assert t_early == pytest.approx(t_full) if full.stable else t_early < 0.5 * t_full
+
+
 # -- scenario generation ------------------------------------------------------------------------
 
 def check_scenario(sc: scenes.Scenario, kind: str, height: int):

@@ -60,6 +60,8 @@ class EvalConfig:
 class DeployConfig:
     episodes: int = field_(50, "stacking / counterbalancing episodes per scenario (thesis: 50)")
     pool: int = field_(12, "objects in the stacking pool (thesis: 12)")
+    stackability_pool: int = field_(24, "objects whose stackability is scored, every class at varied sizes (Figs. "
+                                        "3.5, 3.6); 12 left two or three bases per class")
     anneal_steps: int = field_(30, "simulated-annealing steps per placement")
     anneal_radius: float = field_(0.03, "placement search radius around the trunk (m)")
     cameras: int = field_(6, "cameras watching the stack while stacking (thesis: 6)")
@@ -79,7 +81,7 @@ PRESETS = {
     "tiny": {"data.scenarios": 48, "data.per_shard": 12, "data.cameras": 2, "data.resolution": 32,
              "data.textures": 4, "data.sim_seconds": 1.5, "train.epochs": 3, "train.batch_size": 16,
              "train.input_size": 32, "train.width": 8, "eval.occlusion_images": 4, "deploy.episodes": 1,
-             "deploy.pool": 4, "deploy.anneal_steps": 5},
+             "deploy.pool": 4, "deploy.stackability_pool": 4, "deploy.anneal_steps": 5},
     "small": {},
     "paper": {"data.scenarios": 20000, "data.per_shard": 50, "data.cameras": 16, "data.resolution": 224,
               "train.model": "inception-v4", "train.epochs": 80, "train.batch_size": 32,

@@ -62,8 +62,8 @@ def generate(ctx: Context, unit: Unit) -> tuple[dict[str, np.ndarray], dict[str,
             with ctx.make_sim(scene) as sim:
                 # render the initial, static configuration first, then let physics decide
                 frames = [sim.render(c.name, rgb=True, segmentation=True) for c in scene.cameras]
-                try:
-                    outcome = simulate(sim, scenario, seconds=d.sim_seconds)
+                try:  # the first fall decides both agreement and first_to_fall: stop there
+                    outcome = simulate(sim, scenario, seconds=d.sim_seconds, stop_early=True)
                 except SimulationError:  # the simulator failed on this sample: discard it like a disagreement
                     failures += 1
                     continue

@@ -700,6 +700,16 @@ def _class_means(rows: list[dict[str, Any]]) -> dict[str, float]:
     return out
 
 
+def _area_correlation(rows: list[dict[str, Any]]) -> dict[str, float]:
+    """Fig. 3.6: per class, Pearson's r between stackability and projected area (classes of >= 3 sizes)."""
+    out = {}
+    for cls in CLASS_ORDER:
+        pts = np.array([(r["projected_area"], r["score"]) for r in rows if r["class"] == cls])
+        if len(pts) >= 3 and pts[:, 0].std() > 0 and pts[:, 1].std() > 0:
+            out[cls] = float(np.corrcoef(pts[:, 0], pts[:, 1])[0, 1])
+    return out
+
+
 def _expected_order(means: dict[str, float]) -> bool | None:
     present = [means[c] for c in _EXPECTED if c in means]
     if len(present) < 2:
@@ -713,7 +723,7 @@ def run_stackability(ctx: Context, agents: list[str]) -> dict[str, Any]:
     if not agents:
         raise BadInput("stackability needs a scoring agent: predictor or oracle")
     pool_seed = unit_seed(ctx.seed, "stackability-pool")
-    pool = stackability_pool(cfg.pool, np.random.default_rng(pool_seed))
+    pool = stackability_pool(cfg.stackability_pool, np.random.default_rng(pool_seed))
     units = []
     for agent in agents:
         for i, obj in enumerate(pool):
@@ -721,7 +731,7 @@ def run_stackability(ctx: Context, agents: list[str]) -> dict[str, Any]:
                 units.append(Unit(f"stackability-{agent}", len(units), 1,
                                   unit_seed(ctx.seed, "stackability", i, oriented.orientation),
                                   {"agent": agent, "object": i, "orientation": oriented.orientation,
-                                   "pool": cfg.pool, "pool_seed": pool_seed}))
+                                   "pool": cfg.stackability_pool, "pool_seed": pool_seed}))
     t0 = time.perf_counter()
     rows = ctx.map(stackability_unit, units, description="stackability")
     result: dict[str, Any] = {"task": "stackability", "objects": len(pool), "bases": len(units) // len(agents),
@@ -735,6 +745,7 @@ def run_stackability(ctx: Context, agents: list[str]) -> dict[str, Any]:
             best.setdefault(r["object"], r)
         result["agents"][agent] = {
             "ranking": mine, "class_means": means, "expected_order_holds": _expected_order(means),
+            "area_correlation": _area_correlation(mine),
             "object_order": [{"object": o, "orientation": r["orientation"], "score": r["score"]} for o, r in best.items()],
             "seconds": float(sum(r.pop("seconds") for r in mine)),
         }
@@ -1317,8 +1328,10 @@ def deploy(ctx: Context) -> dict[str, Any]:
     episodes = int(ctx.config.deploy.episodes if episodes is None else episodes)
     if episodes < 1:
         raise BadInput(f"--episodes must be >= 1, got {episodes}")
-    if ctx.config.deploy.pool < 2 and task != "balance":
-        raise BadInput(f"deploy.pool must be >= 2 objects, got {ctx.config.deploy.pool}")
+    pool_key = "stackability_pool" if task == "stackability" else "pool"
+    pool_size = getattr(ctx.config.deploy, pool_key)
+    if pool_size < 2 and task != "balance":
+        raise BadInput(f"deploy.{pool_key} must be >= 2 objects, got {pool_size}")
     agents = _agents(ctx)
     ctx.log(f"stability deploy: task {task}, agents {', '.join(agents)}")
     if task == "stackability":
