@@ -40,6 +40,15 @@ THESIS = {
 GOALS = {"dataset_min": 10.0, "train_min": 30.0, "acc_ccs": 0.85, "violation_area": 0.799}
 
 
+SHORT = {"cuboid largest face": "cuboid L", "cuboid middle face": "cuboid M", "cuboid smallest face": "cuboid S",
+         "cube": "cube", "cylinder upright": "cyl. up", "cylinder lying": "cyl. lying", "sphere": "sphere"}
+
+
+def class_order(means: dict[str, float]) -> str:
+    """Stackability classes best first, with their mean scores."""
+    return " > ".join(f"{SHORT.get(c, c)} {m:.2f}" for c, m in sorted(means.items(), key=lambda kv: -kv[1])) or "-"
+
+
 class Bench(Steps):
     def dataset(self, scene: str, backend: str | None = None) -> Path:  # type: ignore[override]
         backend = backend or self.backend
@@ -142,11 +151,17 @@ def main(argv: list[str] | None = None) -> int:
             if agent in bal["success_rate"]:
                 rows.append((f"counterbalancing success, {agent} (Fig. 3.9)", "figure only (high)",
                              pct(bal["success_rate"][agent]), "-"))
-        sa = b.deploy("stackability-ccs", "stackability", train_ccs, "predictor")
+        sa = b.deploy("stackability-ccs", "stackability", train_ccs, "predictor,oracle")
         figures["stackability_ccs"] = sa
-        order = sa["agents"].get("predictor", {}).get("expected_order_holds")
-        rows.append(("stackability: cuboid face > upright cyl. > lying cyl. > sphere (Fig. 3.6)", "yes",
-                     {True: "yes", False: "no", None: "-"}.get(order, str(order)), "yes"))
+        for agent in ("predictor", "oracle"):
+            got = sa["agents"].get(agent, {})
+            order = got.get("expected_order_holds")
+            rows.append((f"stackability, {agent}: cuboid face > upright cyl. > lying cyl. > sphere (Fig. 3.6)",
+                         "yes" if agent == "predictor" else "-", {True: "yes", False: "no", None: "-"}.get(order, str(order)),
+                         class_order(got.get("class_means", {}))))
+            corr = got.get("area_correlation", {})
+            rows.append((f"  stackability vs projected area, {agent}: Pearson r per class (Fig. 3.6)", "grows with area",
+                         ", ".join(f"{SHORT[c]} {r:+.2f}" for c, r in corr.items()) or "-", "-"))
 
     report(f"stability benchmark, preset {args.preset}, backend {args.backend}", rows, figures, b, args.json)
     return 0

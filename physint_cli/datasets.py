@@ -260,16 +260,24 @@ def verify(root: Path) -> list[str]:
 
 # -- reading ------------------------------------------------------------------------------------
 
+IN_MEMORY_LIMIT = 2 << 30  # bytes: ``in_memory="auto"`` reads a split into memory up to this size
+
+
 class ShardedDataset:
     """Random access to one split of a dataset, as a ``torch.utils.data.Dataset``.
 
     Records are read one at a time from the HDF5 shards; at most ``max_open`` shard files are
     kept open per process, so memory stays bounded whatever the dataset's size. Works with
     DataLoader worker processes (files are opened lazily in each process).
+
+    ``in_memory=True`` reads the split's fields once, shard by shard, into arrays instead (each
+    record decompressed once, not once per epoch: on a 2-core machine a shuffled pass over 25,200
+    gzip-compressed 128 px images cost ~30 s in record reads); ``"auto"`` does so when they take at
+    most ``IN_MEMORY_LIMIT`` bytes (:attr:`nbytes`) and streams otherwise.
     """
 
     def __init__(self, root: Path | str, split: str = "train", fields: list[str] | None = None,
-                 transform=None, method: str | None = None, max_open: int = 8):
+                 transform=None, method: str | None = None, max_open: int = 8, in_memory: bool | str = False):
         self.root = Path(root)
         self.manifest = read_manifest(self.root, method)
         self.split = split
@@ -286,9 +294,24 @@ class ShardedDataset:
         self.max_open = max_open
         self._files: OrderedDict[str, Any] = OrderedDict()
         self._pid = os.getpid()
+        if in_memory not in (True, False, "auto"):
+            raise ValueError(f"in_memory must be True, False or 'auto', got {in_memory!r}")
+        self.arrays: dict[str, np.ndarray] | None = None
+        if in_memory is True or (in_memory == "auto" and self.nbytes <= IN_MEMORY_LIMIT):
+            parts = list(self.shard_arrays())
+            self.arrays = {k: np.concatenate([p[k] for p in parts]) for k in self.fields}
+            self.close()
 
     def __len__(self) -> int:
         return int(self.offsets[-1])
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes the split's fields take uncompressed in memory."""
+        schema = self.manifest["schema"]
+        per_record = sum(int(np.prod(schema[k]["shape"], dtype=np.int64)) * np.dtype(schema[k]["dtype"]).itemsize
+                         for k in self.fields)
+        return per_record * len(self)
 
     def _file(self, shard: dict[str, Any]):
         import h5py
@@ -316,13 +339,21 @@ class ShardedDataset:
         return self.shards[shard_i], index - int(self.offsets[shard_i])
 
     def __getitem__(self, index: int) -> dict[str, np.ndarray]:
-        shard, local = self.locate(int(index))
-        f = self._file(shard)
-        record = {k: f[k][local] for k in self.fields}
+        if self.arrays is not None:
+            index = int(index)
+            if not -len(self) <= index < len(self):
+                raise IndexError(index)
+            record = {k: v[index] for k, v in self.arrays.items()}
+        else:
+            shard, local = self.locate(int(index))
+            f = self._file(shard)
+            record = {k: f[k][local] for k in self.fields}
         return self.transform(record) if self.transform else record
 
     def column(self, name: str) -> np.ndarray:
         """A whole (small, non-image) field of this split, concatenated across shards."""
+        if self.arrays is not None and name in self.arrays:
+            return self.arrays[name]
         return np.concatenate([np.asarray(self._file(s)[name]) for s in self.shards])
 
     def shard_arrays(self, fields: list[str] | None = None):

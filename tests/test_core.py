@@ -69,6 +69,18 @@ def test_dataset_generate_read_and_verify(toy_plugins, tmp_path):
     with h5py.File(out / "shards" / "train-00000.h5") as f:  # images are chunked and compressed
         assert f["image"].compression == "gzip" and f["image"].chunks == (1, 8, 8, 3)
     assert verify(out) == []
+    # read into memory once: the same records, in the same order, and no file left open
+    mem = ShardedDataset(out, "train", ["image", "y"], in_memory="auto")
+    assert mem.arrays is not None and mem.nbytes == 32 * (8 * 8 * 3 + mem.arrays["y"].itemsize) and not mem._files
+    for i in (0, 17, 31, -1):
+        assert np.array_equal(mem[i]["image"], ds[i]["image"]) and mem[i]["y"] == ds[i]["y"]
+    assert np.array_equal(mem.column("y"), ds.column("y"))
+    with pytest.raises(IndexError):
+        mem[32]
+    assert ShardedDataset(out, "train", in_memory=False).arrays is None
+    with pytest.MonkeyPatch.context() as mp:  # a split larger than the limit is streamed
+        mp.setattr("physint_cli.datasets.IN_MEMORY_LIMIT", mem.nbytes - 1)
+        assert ShardedDataset(out, "train", ["image", "y"], in_memory="auto").arrays is None
     # same seed and config -> same data
     call("dataset", "toy", "--preset", "tiny", "--out", str(tmp_path / "ds2"))
     assert np.array_equal(ShardedDataset(tmp_path / "ds2", "test").column("x"), ShardedDataset(out, "test").column("x"))
