@@ -161,7 +161,7 @@ def main(argv: list[str] | None = None) -> int:
                          class_order(got.get("class_means", {}))))
             corr = got.get("area_correlation", {})
             rows.append((f"  stackability vs projected area, {agent}: Pearson r per class (Fig. 3.6)", "grows with area",
-                         ", ".join(f"{SHORT[c]} {r:+.2f}" for c, r in corr.items()) or "-", "-"))
+                         ", ".join(f"{SHORT.get(c, c)} {r:+.2f}" for c, r in corr.items()) or "-", "-"))
 
     report(f"stability benchmark, preset {args.preset}, backend {args.backend}", rows, figures, b, args.json)
     return 0

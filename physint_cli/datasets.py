@@ -298,12 +298,20 @@ class ShardedDataset:
             raise ValueError(f"in_memory must be True, False or 'auto', got {in_memory!r}")
         self.arrays: dict[str, np.ndarray] | None = None
         if in_memory is True or (in_memory == "auto" and self.nbytes <= IN_MEMORY_LIMIT):
-            parts = list(self.shard_arrays())
-            self.arrays = {k: np.concatenate([p[k] for p in parts]) for k in self.fields}
-            self.close()
+            self.arrays = self._read_all()
 
     def __len__(self) -> int:
         return int(self.offsets[-1])
+
+    def _read_all(self) -> dict[str, np.ndarray]:
+        """Every record of the split, field by field, filled in shard by shard (one shard extra in memory)."""
+        schema = self.manifest["schema"]
+        arrays = {k: np.empty((len(self), *schema[k]["shape"]), dtype=schema[k]["dtype"]) for k in self.fields}
+        for start, part in zip(self.offsets, self.shard_arrays()):
+            for k, v in part.items():
+                arrays[k][start:start + len(v)] = v
+        self.close()
+        return arrays
 
     @property
     def nbytes(self) -> int:
@@ -340,10 +348,7 @@ class ShardedDataset:
 
     def __getitem__(self, index: int) -> dict[str, np.ndarray]:
         if self.arrays is not None:
-            index = int(index)
-            if not -len(self) <= index < len(self):
-                raise IndexError(index)
-            record = {k: v[index] for k, v in self.arrays.items()}
+            record = {k: v[int(index)] for k, v in self.arrays.items()}  # numpy raises IndexError out of range
         else:
             shard, local = self.locate(int(index))
             f = self._file(shard)

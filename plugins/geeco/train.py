@@ -38,10 +38,7 @@ def load_split(root: Path, split: str) -> dict[str, np.ndarray]:
     """A whole split of demonstrations in memory (small: ~1.2 MB per demonstration at 64 px)."""
     from physint_cli.datasets import ShardedDataset
 
-    data = ShardedDataset(root, split, FIELDS, method="geeco")
-    parts = list(data.shard_arrays())
-    data.close()
-    return {k: np.concatenate([p[k] for p in parts]) for k in FIELDS}
+    return ShardedDataset(root, split, FIELDS, method="geeco", in_memory=True).arrays
 
 
 class Chunks:
