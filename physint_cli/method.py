@@ -100,6 +100,9 @@ class Method:
     backends: ClassVar[tuple[str, ...]] = ("mujoco",)
     scenes: ClassVar[tuple[str, ...]] = ("default",)
     default_model: ClassVar[str | None] = None
+    # True when ``deploy`` has agents that need no trained model (e.g. a physics oracle): with no
+    # --run and no train run to fall back on, deploy then runs with ``ctx.source_run = None``
+    deploys_without_run: ClassVar[bool] = False
     plugin: str = ""
 
     # -- dataset ------------------------------------------------------------------------------

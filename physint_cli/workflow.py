@@ -222,8 +222,16 @@ def run_train(opts: Options) -> dict[str, Any]:
             "seconds": round(time.perf_counter() - t0, 3)}
 
 
-def _trained(opts: Options) -> tuple[Run, dict[str, Any]]:
-    source = open_run(opts.run, opts.method) if opts.run else latest_run(opts.method, "train")
+def _trained(opts: Options, verb: str) -> tuple[Run | None, dict[str, Any]]:
+    if opts.run:
+        source = open_run(opts.run, opts.method)
+    else:
+        try:
+            source = latest_run(opts.method, "train")
+        except BadInput:
+            if verb == "deploy" and get_plugins().method(opts.method).deploys_without_run:
+                return None, {}  # agents that need no model (the method refuses the ones that do)
+            raise
     info = source.info
     # evaluate with the config the model was trained with; --preset/--set/--backend still override
     base = {**info, "_config_file": source.path / "config.yaml", "_downstream": True}
@@ -231,10 +239,10 @@ def _trained(opts: Options) -> tuple[Run, dict[str, Any]]:
 
 
 def _run_verb(verb: str, opts: Options) -> dict[str, Any]:
-    source, base = _trained(opts)
+    source, base = _trained(opts, verb)
     method, ctx = make_context(opts, base)
     data = opts.data or (Path(base["data"]) if base.get("data") else None)
-    ctx = ctx.with_(source_run=source.path, data=Path(data) if data else None)
+    ctx = ctx.with_(source_run=source.path if source else None, data=Path(data) if data else None)
     run = Run.create(verb, ctx, configs.to_dict(ctx.config), opts.out)
     ctx = ctx.with_(run=run.path)
     t0 = time.perf_counter()
@@ -242,7 +250,8 @@ def _run_verb(verb: str, opts: Options) -> dict[str, Any]:
         result = getattr(method, "evaluate" if verb == "eval" else "deploy")(ctx)
     run.finish(result)
     return {"verb": verb, "method": ctx.method, "backend": ctx.backend, "scene": ctx.scene, "preset": ctx.preset,
-            "seed": ctx.seed, "run": str(run.path.resolve()), "source_run": str(source.path.resolve()),
+            "seed": ctx.seed, "run": str(run.path.resolve()),
+            "source_run": str(source.path.resolve()) if source else None,
             "metrics": result, "artifacts": run.artifacts(), "seconds": round(time.perf_counter() - t0, 3)}
 
 

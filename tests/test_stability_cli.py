@@ -114,3 +114,19 @@ def test_tiny_pipeline_on_robosuite(tmp_path, monkeypatch):
     text = json.dumps(result)
     assert '"backend": "robosuite"' in text
     assert "agreement_rate" in text and "accuracy" in text and "violation_area" in text
+
+
+def test_oracle_and_random_deploy_without_a_trained_run():
+    """The Lemma-1 oracle and random placement need no predictor: deploy runs with no train run anywhere,
+    and asking for the predictor then says to pass --run."""
+    code, stdout, err = call("deploy", "stability", "--preset", "tiny", "--task", "balance", "--set",
+                             "deploy.agents=oracle,random", "--json")
+    assert code == 0, err
+    deployed = json.loads(stdout)
+    assert deployed["source_run"] is None
+    assert set(deployed["metrics"]["success_rate"]) >= {"oracle", "random"}
+    assert "predictor" not in deployed["metrics"]["success_rate"]
+    code, _, err = call("deploy", "stability", "--preset", "tiny", "--task", "balance", "--set", "deploy.agents=predictor")
+    assert code == 2 and "--run" in err and "Traceback" not in err
+    code, _, err = call("eval", "stability", "--preset", "tiny")
+    assert code == 2 and "no trained stability run" in err

@@ -17,3 +17,4 @@ class Stability(PackageMethod):
     backends = ("mujoco", "pybullet", "robosuite")
     scenes = ("ccs", "cubes", "all")
     default_model = "cnn"
+    deploys_without_run = True  # the Lemma-1 oracle and random placement need no predictor
