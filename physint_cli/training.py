@@ -310,5 +310,10 @@ def load_trained_model(run_dir, method: str, what: str, device: str = "cpu"):
     if meta.get("method") != method or meta.get("model") not in get_plugins().models_for(method):
         raise BadInput(f"checkpoint {path} is not a {what} (method {meta.get('method')!r}, model {meta.get('model')!r})")
     model = registered_model(method, meta["model"]).build(**meta["kwargs"])
-    model.load_state_dict(state["model"])
+    try:
+        model.load_state_dict(state["model"])
+    except RuntimeError as exc:  # saved by a version whose layers differ
+        first = str(exc).splitlines()[0]
+        raise BadInput(f"checkpoint {path} does not fit this version's {meta['model']!r} model ({first}); "
+                       f"train it again") from None
     return model.to(device).eval(), meta

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 
 import numpy as np
 import pytest
@@ -231,3 +232,49 @@ def test_individual_augmentations_keep_shape_dtype_and_range():
         assert y.shape == x.shape and y.dtype == torch.float32 and 0 <= y.min() and y.max() <= 1
         assert f(x[0], generator=g).shape == x[0].shape
         assert not torch.allclose(y, x)
+
+
+def test_colour_jitter_is_the_documented_steps_in_one_pass():
+    """Brightness, contrast (towards the mean grey), saturation (towards the pixel's grey), a hue
+    rotation about the grey axis and channel shifts, one after the other, give what colour_jitter
+    gives in one affine pass (mid-grey images, so no step clamps)."""
+    x = 0.35 + 0.3 * torch.rand(5, 3, 12, 10, generator=torch.Generator().manual_seed(1))
+    kw = dict(brightness=0.2, contrast=0.2, saturation=0.3, hue=0.05, channel_shift=0.02)
+    got = augment.colour_jitter(x, generator=torch.Generator().manual_seed(3), **kw)
+    g = torch.Generator().manual_seed(3)                       # the same draws, in the same order
+    b, c, s = (1 + (2 * torch.rand(5, generator=g) - 1) * kw[k] for k in ("brightness", "contrast", "saturation"))
+    h = (2 * torch.rand(5, generator=g) - 1) * kw["hue"] * 2 * math.pi
+    shift = ((2 * torch.rand(15, generator=g) - 1) * kw["channel_shift"]).view(5, 3, 1, 1)
+    luma = torch.tensor([0.299, 0.587, 0.114]).view(1, 3, 1, 1)
+    y = x * b.view(5, 1, 1, 1)
+    m = (y * luma).sum(1, keepdim=True).mean(dim=(2, 3), keepdim=True)
+    y = (y - m) * c.view(5, 1, 1, 1) + m
+    grey = (y * luma).sum(1, keepdim=True)
+    y = (y - grey) * s.view(5, 1, 1, 1) + grey
+    k = torch.full((3,), 1 / math.sqrt(3))
+    K = torch.tensor([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    for i in range(5):   # Rodrigues rotation by h about the grey axis
+        R = math.cos(h[i]) * torch.eye(3) + math.sin(h[i]) * K + (1 - math.cos(h[i])) * torch.outer(k, k)
+        y[i] = torch.einsum("ij,jhw->ihw", R, y[i])
+    y = y + shift
+    assert 0 < y.min() and y.max() < 1
+    assert torch.allclose(got, y, atol=1e-5)
+
+
+def test_a_checkpoint_whose_layers_do_not_fit_the_model_is_refused_clearly(tmp_path):
+    """A predictor saved by a version with other layers: one clear error (exit 2), not a traceback."""
+    from physint_cli.errors import BadInput
+    from physint_cli.runs import Run
+    from physint_cli.training import load_trained_model, save_checkpoint
+
+    path = Run(tmp_path).checkpoint("best")
+    path.parent.mkdir(parents=True)
+    older = model.compact_cnn(32, 8).state_dict()
+    older = {k.replace("features.1.", "features.9."): v for k, v in older.items()}   # a layer moved
+    save_checkpoint(path, model=older, meta={"method": "stability", "model": "cnn", "kwargs": {"in_size": 32, "width": 8}})
+    with pytest.raises(BadInput, match="does not fit this version's 'cnn' model"):
+        load_trained_model(tmp_path, "stability", "stability predictor")
+    save_checkpoint(path, model=model.compact_cnn(32, 8).state_dict(),
+                    meta={"method": "stability", "model": "cnn", "kwargs": {"in_size": 32, "width": 8}})
+    net, meta = load_trained_model(tmp_path, "stability", "stability predictor")
+    assert meta["kwargs"]["width"] == 8 and not net.training

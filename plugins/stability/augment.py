@@ -57,11 +57,8 @@ def to_float(images) -> torch.Tensor:
     x = torch.as_tensor(images)
     if x.dim() not in (3, 4) or x.shape[-1] != 3:
         raise ValueError(f"expected RGB images (H, W, 3) or (N, H, W, 3), got shape {tuple(x.shape)}")
-    if x.dtype == torch.uint8:
-        x = x.to(torch.float32) / 255.0
-    else:
-        x = x.to(torch.float32)
-    return x.movedim(-1, -3).contiguous()
+    x = x.movedim(-1, -3).contiguous()          # transpose first: bytes, not floats, for uint8
+    return x.to(torch.float32).div_(255.0) if x.dtype == torch.uint8 else x.to(torch.float32)
 
 
 def _batched(x: torch.Tensor) -> tuple[torch.Tensor, bool]:
@@ -89,11 +86,6 @@ def _uniform(n: int, lo: float, hi: float, generator: torch.Generator | None) ->
 # colour
 # --------------------------------------------------------------------------------------------
 
-def _grey(x: torch.Tensor) -> torch.Tensor:
-    w = torch.tensor(_LUMA, dtype=x.dtype).view(1, 3, 1, 1)
-    return (x * w).sum(dim=1, keepdim=True)
-
-
 def _hue_matrices(angles: torch.Tensor) -> torch.Tensor:
     """Rotations of RGB space about the grey axis (1, 1, 1)/√3 (Rodrigues): a hue shift that keeps
     grey levels grey.  ``angles`` in radians, shape (N,) → (N, 3, 3)."""
@@ -110,23 +102,26 @@ def colour_jitter(x: torch.Tensor, brightness: float = 0.25, contrast: float = 0
 
     brightness ×U(1±brightness); contrast: blend with the image's mean grey by U(1±contrast);
     saturation: blend with the per-pixel grey by U(1±saturation); hue: rotate RGB about the grey
-    axis by U(±hue) turns; channel shifts: add U(±channel_shift) to each channel.  Clamped to [0, 1].
+    axis by U(±hue) turns; channel shifts: add U(±channel_shift) to each channel.  Every step is
+    affine in RGB, so they are composed into one 3x3 matrix and offset per image, applied in one
+    pass and clamped to [0, 1] once.
     """
     xb, single = _batched(x)
     n = xb.shape[0]
-    b = _uniform(n, 1 - brightness, 1 + brightness, generator).view(n, 1, 1, 1)
-    c = _uniform(n, 1 - contrast, 1 + contrast, generator).view(n, 1, 1, 1)
-    s = _uniform(n, 1 - saturation, 1 + saturation, generator).view(n, 1, 1, 1)
+    b = _uniform(n, 1 - brightness, 1 + brightness, generator).view(n, 1, 1)
+    c = _uniform(n, 1 - contrast, 1 + contrast, generator).view(n, 1, 1)
+    s = _uniform(n, 1 - saturation, 1 + saturation, generator).view(n, 1, 1)
     h = _uniform(n, -hue, hue, generator) * 2 * math.pi
-    shift = _uniform(3 * n, -channel_shift, channel_shift, generator).view(n, 3, 1, 1)
+    shift = _uniform(3 * n, -channel_shift, channel_shift, generator).view(n, 3, 1)
 
-    y = (xb * b).clamp(0.0, 1.0)                                    # brightness
-    m = _grey(y).mean(dim=(-2, -1), keepdim=True)
-    y = ((y - m) * c + m).clamp(0.0, 1.0)                           # contrast
-    g = _grey(y)
-    y = ((y - g) * s + g).clamp(0.0, 1.0)                           # saturation
-    y = torch.bmm(_hue_matrices(h), y.flatten(2)).view_as(y)         # hue
-    y = (y + shift).clamp(0.0, 1.0)                                 # channel shifts
+    luma = torch.tensor(_LUMA, dtype=xb.dtype)
+    grey = luma.expand(3, 3)                                        # G: every channel ← the grey level
+    mean_grey = (xb.mean(dim=(-2, -1)) @ luma).view(n, 1, 1)        # the image's mean grey
+    # y = H (s I + (1 - s) G) (c b x + (1 - c) b m) + shift; G and H keep grey levels grey, so
+    # the contrast term's grey offset passes through saturation and hue unchanged
+    matrix = _hue_matrices(h) @ (s * torch.eye(3) + (1 - s) * grey) * (c * b)
+    offset = (1 - c) * b * mean_grey + shift                        # (N, 3, 1)
+    y = torch.baddbmm(offset, matrix, xb.flatten(2)).view_as(xb).clamp_(0.0, 1.0)
     return y[0] if single else y
 
 

@@ -91,9 +91,13 @@ def n_params(model: nn.Module, trainable_only: bool = True) -> int:
 # compact CNN: the CPU default
 # --------------------------------------------------------------------------------------------
 
-def _conv_bn_relu(c_in: int, c_out: int, stride: int = 1) -> nn.Sequential:
-    return nn.Sequential(nn.Conv2d(c_in, c_out, 3, stride=stride, padding=1, bias=False),
-                         nn.BatchNorm2d(c_out), nn.ReLU(inplace=True))
+def _conv_bn_relu(c_in: int, c_out: int, stride: int = 1, pool: bool = False) -> nn.Sequential:
+    """3x3 conv → (2x2 max pool) → BN → ReLU.  Pooling right after the convolution gives BN and
+    ReLU, memory-bound on a CPU, a quarter of the pixels (ReLU commutes with max pooling)."""
+    layers: list[nn.Module] = [nn.Conv2d(c_in, c_out, 3, stride=stride, padding=1, bias=False)]
+    if pool:
+        layers.append(nn.MaxPool2d(2))
+    return nn.Sequential(*layers, nn.BatchNorm2d(c_out), nn.ReLU(inplace=True))
 
 
 def compact_cnn(in_size: int = 64, width: int = 32, dropout: float = 0.3) -> nn.Module:
@@ -112,10 +116,10 @@ def compact_cnn(in_size: int = 64, width: int = 32, dropout: float = 0.3) -> nn.
     w = int(width)
     stem_stride = 2 if in_size >= 128 else 1
     features = nn.Sequential(
-        _conv_bn_relu(3, w, stem_stride), nn.MaxPool2d(2),
-        _conv_bn_relu(w, 2 * w), _conv_bn_relu(2 * w, 2 * w), nn.MaxPool2d(2),
-        _conv_bn_relu(2 * w, 4 * w), _conv_bn_relu(4 * w, 4 * w), nn.MaxPool2d(2),
-        _conv_bn_relu(4 * w, 4 * w), nn.MaxPool2d(2),
+        _conv_bn_relu(3, w, stem_stride, pool=True),
+        _conv_bn_relu(w, 2 * w), _conv_bn_relu(2 * w, 2 * w, pool=True),
+        _conv_bn_relu(2 * w, 4 * w), _conv_bn_relu(4 * w, 4 * w, pool=True),
+        _conv_bn_relu(4 * w, 4 * w, pool=True),
         nn.AdaptiveAvgPool2d(4), nn.Flatten(),  # keep a coarse 4x4 layout of the scene
     )
     head = nn.Sequential(nn.Dropout(dropout), nn.Linear(4 * w * 16, 128), nn.ReLU(inplace=True),
