@@ -104,7 +104,8 @@ def compact_cnn(in_size: int = 64, width: int = 32, dropout: float = 0.3) -> nn.
     """A small VGG-style CNN for CPU training (the ``tiny``/``small`` presets).
 
     Four stages of 3x3 conv-BN-ReLU layers (``width``, ``2·width``, ``4·width``, ``4·width``
-    channels), each followed by 2x2 max pooling, pooled to a 4x4 grid that is *flattened*, not
+    channels), each ending in 2x2 max pooling (between its last convolution and that one's BN),
+    pooled to a 4x4 grid that is *flattened*, not
     averaged: stability depends on where the objects are relative to each other (Eq. 3.1), and
     global average pooling, which throws that layout away, left an earlier version of this
     network at chance on ShapeStacks while this one learns. Then FC(128)-ReLU and one logit.
