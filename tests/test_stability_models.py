@@ -269,12 +269,12 @@ def test_a_checkpoint_whose_layers_do_not_fit_the_model_is_refused_clearly(tmp_p
 
     path = Run(tmp_path).checkpoint("best")
     path.parent.mkdir(parents=True)
+    meta = {"method": "stability", "model": "cnn", "kwargs": {"in_size": 32, "width": 8}}
     older = model.compact_cnn(32, 8).state_dict()
     older = {k.replace("features.1.", "features.9."): v for k, v in older.items()}   # a layer moved
-    save_checkpoint(path, model=older, meta={"method": "stability", "model": "cnn", "kwargs": {"in_size": 32, "width": 8}})
+    save_checkpoint(path, model=older, meta=meta)
     with pytest.raises(BadInput, match="does not fit this version's 'cnn' model"):
         load_trained_model(tmp_path, "stability", "stability predictor")
-    save_checkpoint(path, model=model.compact_cnn(32, 8).state_dict(),
-                    meta={"method": "stability", "model": "cnn", "kwargs": {"in_size": 32, "width": 8}})
+    save_checkpoint(path, model=model.compact_cnn(32, 8).state_dict(), meta=meta)
     net, meta = load_trained_model(tmp_path, "stability", "stability predictor")
     assert meta["kwargs"]["width"] == 8 and not net.training

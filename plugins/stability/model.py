@@ -105,10 +105,10 @@ def compact_cnn(in_size: int = 64, width: int = 32, dropout: float = 0.3) -> nn.
 
     Four stages of 3x3 conv-BN-ReLU layers (``width``, ``2·width``, ``4·width``, ``4·width``
     channels), each ending in 2x2 max pooling (between its last convolution and that one's BN),
-    pooled to a 4x4 grid that is *flattened*, not
-    averaged: stability depends on where the objects are relative to each other (Eq. 3.1), and
-    global average pooling, which throws that layout away, left an earlier version of this
-    network at chance on ShapeStacks while this one learns. Then FC(128)-ReLU and one logit.
+    pooled to a 4x4 grid that is *flattened*, not averaged: stability depends on where the
+    objects are relative to each other (Eq. 3.1), and global average pooling, which throws that
+    layout away, left an earlier version of this network at chance on ShapeStacks while this one
+    learns. Then FC(128)-ReLU and one logit.
     ``width=32`` → 688,289 parameters. At ``in_size >= 128`` the first convolution has stride 2,
     so the cost and the receptive field relative to the image stay about those at 64.
     Output: logits ``(N,)``.
