@@ -52,6 +52,7 @@ TABLE_NAME = "table"
 ROLLING_FRICTION = 1e-4
 SPINNING_FRICTION = 5e-3
 CURVED = ("sphere", "cylinder", "mesh")
+CYLINDER_SLICES = 28  # sides of a drawn cylinder: MuJoCo's default visual quality.numslices
 MESH_MARGIN = 1e-3  # m: Bullet's collision margin around convex hulls (boxes and spheres keep theirs inside)
 # Two bodies touch when their surfaces are at most this far apart (m). contacts() measures the
 # distance itself rather than reading Bullet's contact manifolds, which miss resting contacts at
@@ -396,9 +397,10 @@ class PybulletSimulation(Simulation):
         args: dict = {}
         if geom.shape == "box":
             args.update(shapeType=pybullet.GEOM_BOX, halfExtents=[s / 2 for s in geom.size])
-        elif geom.shape == "cylinder":
-            args.update(shapeType=pybullet.GEOM_CYLINDER, radius=geom.size[0])
-            args["height" if kind == "collision" else "length"] = geom.size[1]
+        elif geom.shape == "cylinder" and kind == "collision":
+            args.update(shapeType=pybullet.GEOM_CYLINDER, radius=geom.size[0], height=geom.size[1])
+        elif geom.shape == "cylinder":  # Bullet's own cylinder mesh smooths its normals over the rims
+            args.update(shapeType=pybullet.GEOM_MESH, fileName=self._cylinder_obj_file(*geom.size), meshScale=[1, 1, 1])
         elif geom.shape == "sphere":
             args.update(shapeType=pybullet.GEOM_SPHERE, radius=geom.size[0])
         else:  # convex mesh: Bullet builds the convex hull of the .obj's vertices for collision
@@ -453,14 +455,8 @@ class PybulletSimulation(Simulation):
             normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-12)
             lo, hi = vertices.min(0), vertices.max(0)
             uv = (corners[..., :2] - lo[:2]) / np.maximum(hi[:2] - lo[:2], 1e-9)
-            lines = [f"v {x:.9g} {y:.9g} {z:.9g}" for x, y, z in corners.reshape(-1, 3)]
-            lines += [f"vt {u:.6g} {v:.6g}" for u, v in uv.reshape(-1, 2)]
-            lines += [f"vn {x:.6g} {y:.6g} {z:.6g}" for x, y, z in normals]
-            for f in range(len(faces)):
-                a, b, c = 3 * f + 1, 3 * f + 2, 3 * f + 3
-                lines.append(f"f {a}/{a}/{f + 1} {b}/{b}/{f + 1} {c}/{c}/{f + 1}")
-            with open(path, "w") as fh:
-                fh.write("\n".join(lines) + "\n")
+            _write_obj(path, corners.reshape(-1, 3), uv.reshape(-1, 2), np.repeat(normals, 3, axis=0),
+                       np.arange(3 * len(faces)).reshape(-1, 3))
 
         def write_collision(path: str) -> None:
             points, triangles = shrunk_hull(vertices, MESH_MARGIN)
@@ -471,6 +467,43 @@ class PybulletSimulation(Simulation):
 
         key = kind.encode() + vertices.tobytes() + faces.tobytes()
         return self._file(key, ".obj", write_visual if kind == "visual" else write_collision)
+
+    def _cylinder_obj_file(self, radius: float, length: float) -> str:
+        """A Wavefront .obj of a cylinder along z, centred on the origin, as MuJoCo draws one.
+
+        The side's normals point straight out and each cap's straight up or down, with the rim
+        vertices duplicated, so the rims stay sharp. Bullet's own visual cylinder shares its rim
+        normals between side and cap: TinyRenderer then shades a cylinder like a rounded pebble
+        and a lying one looks like a sphere. The side's uvs wrap around once (u) along the axis
+        (v); the caps' are planar, as on a mesh.
+        """
+        def write(path: str) -> None:
+            n = CYLINDER_SLICES
+            angle = np.linspace(0.0, 2 * np.pi, n + 1)  # the seam's column twice, for the uvs
+            ring = np.stack([np.cos(angle), np.sin(angle)], axis=1)
+            half = length / 2
+            # side: a bottom and a top vertex per column, normals radial
+            side = np.concatenate([np.column_stack([radius * ring, np.full(n + 1, z)]) for z in (-half, half)])
+            side_uv = np.concatenate([np.column_stack([angle / (2 * np.pi), np.full(n + 1, v)]) for v in (0.0, 1.0)])
+            side_n = np.concatenate([np.column_stack([ring, np.zeros(n + 1)])] * 2)
+            k = np.arange(n)
+            side_tri = np.concatenate([np.stack([k, k + 1, n + 1 + k + 1], 1), np.stack([k, n + 1 + k + 1, n + 1 + k], 1)])
+            positions, uvs, normals, triangles = [side], [side_uv], [side_n], [side_tri]
+            count = len(side)
+            for z, up in ((half, 1.0), (-half, -1.0)):  # caps: a centre and a ring, normal along the axis
+                cap = np.vstack([[0.0, 0.0, z], np.column_stack([radius * ring[:n], np.full(n, z)])])
+                fan = np.stack([np.zeros(n, int), 1 + k, 1 + (k + 1) % n], 1)
+                if up < 0:
+                    fan = fan[:, [0, 2, 1]]  # counter-clockwise seen from below
+                positions.append(cap)
+                uvs.append(0.5 + 0.5 * np.vstack([[0.0, 0.0], ring[:n]]))
+                normals.append(np.tile([0.0, 0.0, up], (n + 1, 1)))
+                triangles.append(fan + count)
+                count += n + 1
+            _write_obj(path, np.concatenate(positions), np.concatenate(uvs), np.concatenate(normals),
+                       np.concatenate(triangles))
+
+        return self._file(f"cylinder {radius!r} {length!r} {CYLINDER_SLICES}".encode(), ".obj", write)
 
     # -- time ----------------------------------------------------------------------------------
     @property
@@ -703,6 +736,16 @@ def _silence_stdout():
         os.dup2(saved, 1)
         os.close(saved)
         os.close(devnull)
+
+
+def _write_obj(path: str, positions: np.ndarray, uvs: np.ndarray, normals: np.ndarray, triangles: np.ndarray) -> None:
+    """A Wavefront .obj whose vertex ``i`` has position, uv and normal ``i`` (counter-clockwise triangles)."""
+    lines = [f"v {x:.9g} {y:.9g} {z:.9g}" for x, y, z in positions]
+    lines += [f"vt {u:.6g} {v:.6g}" for u, v in uvs]
+    lines += [f"vn {x:.6g} {y:.6g} {z:.6g}" for x, y, z in normals]
+    lines += ["f " + " ".join(f"{i + 1}/{i + 1}/{i + 1}" for i in tri) for tri in triangles]
+    with open(path, "w") as fh:
+        fh.write("\n".join(lines) + "\n")
 
 
 def _stack_args(per_geom: list[dict], kind: str) -> dict:

@@ -296,3 +296,31 @@ def test_ground_texture_tiles_at_the_same_scale(backend):
     for line in (rgb[64, :, 0], rgb[:, 64, 0]):
         edges = int(np.abs(np.diff((line > 128).astype(int))).sum())
         assert 10 <= edges <= 13, edges
+
+
+def test_a_cylinder_is_drawn_with_a_flat_cap_and_sharp_rims(backend):
+    """Lit from straight above, an upright cylinder's cap is one flat colour seen from above, and
+    a lying cylinder seen side-on is one colour along its axis. (PyBullet's own cylinder mesh
+    shares normals between cap and side: the cap darkened towards its rim and a lying cylinder
+    looked like a sphere, so predictors trained on one backend misread the other's cylinders.)"""
+    light = pb.Light(pos=(0, 0, 3), lookat=(0, 0, 0), diffuse=(0.6, 0.6, 0.6), ambient=(0.3, 0.3, 0.3))
+    lying = (math.cos(math.pi / 4), math.sin(math.pi / 4), 0, 0)  # axis along y
+    bodies = [Body.cylinder("up", 0.05, 0.1, pos=(-0.2, 0, 0.05), rgba=(0.8, 0.2, 0.2, 1)),
+              Body.cylinder("lying", 0.05, 0.2, pos=(0.2, 0, 0.05), quat=lying, rgba=(0.2, 0.8, 0.2, 1))]
+    top = Camera("top", pos=(-0.2, 0, 1.0), lookat=(-0.2, 0, 0), up=(0, 1, 0), fovy=20, width=96, height=96)
+    side = Camera("side", pos=(1.2, 0, 0.05), lookat=(0.2, 0, 0.05), up=(0, 0, 1), fovy=20, width=96, height=96)
+    with pb.make(backend, Scene(bodies=bodies, lights=[light], cameras=[top, side])) as sim:
+        cap = sim.render("top", segmentation=True)
+        flank = sim.render("side", segmentation=True)
+    up, lie = sim.body_names.index("up"), sim.body_names.index("lying")
+    inner = np.zeros((96, 96), bool)
+    inner[4:-4, 4:-4] = True  # away from the silhouette's anti-aliased edge
+    pixels = cap.rgb[(cap.segmentation == up) & inner].astype(int)
+    assert len(pixels) > 500 and np.ptp(pixels[:, 0]) <= 6, np.ptp(pixels[:, 0])
+    rows = flank.rgb[..., 1].astype(int)
+    mask = flank.segmentation == lie
+    row = 40  # above the axis, facing the light
+    cols = np.flatnonzero(mask[row])
+    assert len(cols) > 20
+    along = rows[row, cols[3:-3]]  # one height on the side, along the axis
+    assert np.ptp(along) <= 6, np.ptp(along)
