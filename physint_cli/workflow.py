@@ -93,9 +93,11 @@ def make_context(opts: Options, base: dict[str, Any] | None = None) -> tuple[Any
 
 # -- dataset ------------------------------------------------------------------------------------
 
-def dataset_cache_dir(ctx: Context) -> Path:
+def dataset_cache_dir(ctx: Context, splits: tuple[str, ...] | None = None) -> Path:
+    """Where the dataset of ``ctx`` is cached; ``splits``: the cache of only those splits' shards."""
     section = getattr(ctx.config, "data", ctx.config)
-    return home() / "datasets" / f"{ctx.method}-{ctx.scene}-{ctx.backend}-{ctx.preset}-s{ctx.seed}-{configs.fingerprint(section)}"
+    only = "-" + "+".join(sorted(splits)) if splits else ""
+    return home() / "datasets" / f"{ctx.method}-{ctx.scene}-{ctx.backend}-{ctx.preset}-s{ctx.seed}-{configs.fingerprint(section)}{only}"
 
 
 def _generate_unit(method: Any, ctx: Context, unit: Unit) -> dict[str, Any]:
@@ -106,14 +108,22 @@ def _generate_unit(method: Any, ctx: Context, unit: Unit) -> dict[str, Any]:
     return write_shard(ctx.data, unit.name, unit.split, arrays, stats)
 
 
-def generate_dataset(method: Any, ctx: Context, out: Path) -> dict[str, Any]:
-    """Generate (or resume, or reuse) the dataset for ``ctx`` in ``out``; returns the manifest."""
+def generate_dataset(method: Any, ctx: Context, out: Path, splits: tuple[str, ...] | None = None) -> dict[str, Any]:
+    """Generate (or resume, or reuse) the dataset for ``ctx`` in ``out``; returns the manifest.
+
+    ``splits`` (say ``("test",)``) makes only those splits' shards, the same shards the whole
+    dataset would hold (every unit draws from its own seed).
+    """
     out = check_writable(Path(out))
     ctx = ctx.with_(data=out)
     units = method.dataset_units(ctx)
+    if splits:
+        units = [u for u in units if u.split in splits]
     header = {"method": ctx.method, "scene": ctx.scene, "backend": ctx.backend, "preset": ctx.preset, "seed": ctx.seed,
               "config": configs.to_dict(ctx.config), "units": len(units), "plugin": method.plugin,
               "versions": versions("mujoco", "pybullet", "robosuite")}
+    if splits:
+        header["only_splits"] = sorted(splits)
     manifest = start_manifest(out, header)
     if manifest.get("status") == "complete":
         ctx.log(f"dataset {out} is already complete ({manifest.get('records')} records)")
@@ -144,12 +154,23 @@ def run_dataset(opts: Options) -> dict[str, Any]:
             "records": manifest.get("records"), "stats": manifest.get("stats"), "seconds": round(time.perf_counter() - t0, 3)}
 
 
-def ensure_dataset(method: Any, ctx: Context, data: Path | None) -> Path:
-    """The dataset to train/evaluate on: ``--data``, or the cached one (generated once)."""
+def ensure_dataset(method: Any, ctx: Context, data: Path | None, splits: tuple[str, ...] | None = None) -> Path:
+    """The dataset to train/evaluate on: ``--data``, or the cached one (generated once).
+
+    ``splits`` names the only splits the caller reads (an evaluation's test set): the whole
+    cached dataset serves when it exists, otherwise only those splits are generated, into a
+    cache of their own (an all-shapes test set is a seventh of the all-shapes dataset).
+    """
     if data is not None:
         read_manifest(Path(data), ctx.method)
         return Path(data)
     cached = dataset_cache_dir(ctx)
+    if splits:
+        try:
+            read_manifest(cached, ctx.method)
+            return cached
+        except BadInput:
+            cached = dataset_cache_dir(ctx, splits)
     rank = int(os.environ.get("RANK", "0"))
     if rank != 0:  # under torchrun, rank 0 generates; the others wait for it
         while True:
@@ -161,8 +182,9 @@ def ensure_dataset(method: Any, ctx: Context, data: Path | None) -> Path:
     try:
         read_manifest(cached, ctx.method)
     except BadInput:
-        ctx.log(f"no cached dataset for this configuration: generating {cached}")
-        generate_dataset(method, ctx, cached)
+        only = f" ({', '.join(splits)} split{'s' if len(splits) > 1 else ''} only)" if splits else ""
+        ctx.log(f"no cached dataset for this configuration: generating {cached}{only}")
+        generate_dataset(method, ctx, cached, splits)
     return cached
 
 

@@ -52,6 +52,11 @@ def test_train_eval_deploy_tiny(tiny_dataset, tmp_path):
     assert code == 0, err
     metrics = json.loads(stdout)["metrics"]
     assert metrics["cross_backend"]["pybullet"]["images"] > 0  # trained on MuJoCo renders, tested on PyBullet's
+    # only the test split of PyBullet's all-shapes dataset was made, the very shards the whole one holds
+    other = json.loads((Path(metrics["cross_backend"]["pybullet"]["test_data"]) / "manifest.json").read_text())
+    assert set(other["splits"]) == {"test"} and other["only_splits"] == ["test"]
+    whole = json.loads((out / "manifest.json").read_text())
+    assert [s["file"] for s in other["shards"]] == [s["file"] for s in whole["shards"] if s["split"] == "test"]
     assert metrics["images"] > 0 and 0 <= metrics["accuracy"] <= 1
     assert set(metrics["by_violation"]) == {"stable", "VCOM", "VPSF"}
     table = metrics["localisation"]

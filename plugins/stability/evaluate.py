@@ -220,7 +220,8 @@ def evaluate(ctx: Context) -> dict[str, Any]:
     model, input_size = load_predictor(ctx.source_run, ctx.device)
     e = ctx.config.eval
     # the thesis tests on stacks of all shapes, whatever the predictor was trained on
-    test_data = ctx.data if (ctx.scene == "all" and ctx.data) else ensure_dataset(method, ctx.with_(scene="all"), None)
+    test_data = ctx.data if (ctx.scene == "all" and ctx.data) else \
+        ensure_dataset(method, ctx.with_(scene="all"), None, splits=("test",))
     scores = test_split_scores(model, input_size, test_data, e.batch_size)
     metrics: dict[str, Any] = {"trained_on": _trained_scene(ctx), "backend": ctx.backend,
                                "test_data": str(test_data), **accuracy_table(scores)}
@@ -228,8 +229,9 @@ def evaluate(ctx: Context) -> dict[str, Any]:
     occlusion = occlusion_study(ctx, test_data)
     metrics["localisation"] = occlusion["table"]
     if e.cross_backend:
-        other = ensure_dataset(method, ctx.with_(scene="all", backend=e.cross_backend), None)
-        metrics["cross_backend"] = {e.cross_backend: accuracy_table(test_split_scores(model, input_size, other, e.batch_size))}
+        other = ensure_dataset(method, ctx.with_(scene="all", backend=e.cross_backend), None, splits=("test",))
+        metrics["cross_backend"] = {e.cross_backend: {"test_data": str(other),
+                                                      **accuracy_table(test_split_scores(model, input_size, other, e.batch_size))}}
     _plots(run, metrics, occlusion["example"])
     return metrics
 
