@@ -194,8 +194,8 @@ def fit(model, train_set, val_set, *, run, epochs: int, batch_size: int, lr: flo
         weight_decay: float = 0.0, num_workers: int = 0, seed: int = 0, higher_is_better: bool = False,
         meta: dict[str, Any] | None = None, log: Callable[[str], None] = print,
         make_optimizer: Callable[[Any], tuple[Any, Any]] | None = None, precision: str = "fp32",
-        channels_last: bool = False, batch_transform: Callable[[dict[str, Any]], dict[str, Any]] | None = None
-        ) -> FitResult:
+        channels_last: bool = False, batch_transform: Callable[[dict[str, Any]], dict[str, Any]] | None = None,
+        before_epoch: Callable[[int, Any], None] | None = None) -> FitResult:
     """Supervised training with checkpoints every epoch, resume and DDP.
 
     ``loss_fn(model, batch) -> scalar loss``; ``metric_fn(model, loader) -> float`` on validation.
@@ -207,6 +207,8 @@ def fit(model, train_set, val_set, *, run, epochs: int, batch_size: int, lr: flo
     ``meta`` is saved in every checkpoint (e.g. the model name and its constructor arguments).
     ``make_optimizer(model) -> (optimizer, scheduler or None)`` replaces the built-in optimizers;
     the scheduler is stepped once per epoch.
+    ``before_epoch(epoch, model)`` runs before each epoch (0-based; also the first one after a
+    resume) and may grow ``train_set`` (single process only: a distributed sampler's length is fixed).
     """
     import torch
     from torch.utils.data import DataLoader, DistributedSampler
@@ -245,9 +247,13 @@ def fit(model, train_set, val_set, *, run, epochs: int, batch_size: int, lr: flo
     loader = DataLoader(train_set, batch_size=batch_size, shuffle=sampler is None, sampler=sampler,
                         num_workers=num_workers, generator=generator, drop_last=False)
     val_loader = DataLoader(val_set, batch_size=batch_size, shuffle=False, num_workers=num_workers)
+    if before_epoch is not None and d.enabled:
+        raise BadInput("this training grows its data between epochs, which needs a single process (not torchrun)")
     for epoch in range(start_epoch, epochs):
         if sampler is not None:
             sampler.set_epoch(epoch)
+        if before_epoch is not None:
+            before_epoch(epoch, unwrap(model))
         model.train()
         total, count = 0.0, 0
         for batch in loader:

@@ -213,7 +213,83 @@ def test_bad_training_settings_exit_2(tiny_pipeline, tmp_path):
                              ("train.chunk=0", "train.chunk must be in [1, 100]"),
                              ("train.epochs=0", "train.epochs must be >= 1"),
                              ("train.min_side=0", "train.min_side must be >= 1"),
-                             ("train.schedule=step", "train.schedule must be one of cosine, constant")):
+                             ("train.schedule=step", "train.schedule must be one of cosine, constant"),
+                             ("train.dagger_epochs=1", "train.dagger_epochs must lie in [2, train.epochs = 2]"),
+                             ("train.dagger_epochs=two", "train.dagger_epochs must be comma-separated epoch numbers")):
         code, _, err = call("train", "geeco", "--preset", "tiny", "--data", str(out / "dataset"), "--set", setting,
                             "--out", str(tmp_path / "r"))
         assert code == 2 and message in err, (setting, err)
+
+
+class _ExpertWithDetour:
+    """A stand-in controller: its own push expert's commands, except a 1 cm sideways detour per
+    step for the first ``detour`` steps (its expert's plan follows the detour, as under noise)."""
+
+    def __init__(self, sim, ep, detour: int):
+        from physint_plugins.geeco.expert import Expert
+
+        self.sim, self.expert, self.detour, self.t, self.commands = sim, Expert(ep), detour, 0, []
+
+    def reset(self, target):
+        pass
+
+    def act(self, rgb, joints):
+        action = self.expert.act(self.sim)
+        self.commands.append(action.copy())
+        if self.t < self.detour:
+            action = self.expert.perturb(action, np.array([0.0, 0.01, 0.0]))
+        self.t += 1
+        return action
+
+
+def test_dagger_labels_the_states_a_controller_reaches_with_the_experts_commands(tiny_pipeline):
+    """Rolled out by a controller that strays, then behaves like the expert, the labelling expert
+    knows where the hand was sent (``Expert.follow``): from the detour's end on its labels are the
+    commands of an expert that drove itself, and the cube ends on its target."""
+    import physint_backends as pb
+    from physint_plugins.geeco.dagger import rollout
+    from physint_plugins.geeco.expert import on_target
+    from physint_plugins.geeco.train import episodes_of
+
+    out, _ = tiny_pipeline
+    demos = ShardedDataset(out / "dataset", "train", method="geeco", in_memory=True).arrays
+    ep = episodes_of(demos, "goal2cube2", "push")[0]
+    with pb.make("mujoco", S.build_scene(ep, 32)) as sim:
+        controller = _ExpertWithDetour(sim, ep, detour=8)
+        r = rollout(sim, ep, controller, demos["rgb"][0, -1], 100)
+        assert on_target(ep, sim)
+    commands = np.array(controller.commands)
+    assert np.allclose(r["dee"][8:], commands[8:, :3], atol=1e-9)
+    assert not np.allclose(r["dee"][:8], commands[:8, :3] + [0, 0.01, 0])  # the detour is not what it labels
+    assert (r["target"] == demos["rgb"][0, -1]).all() and r["rgb"].shape == (100, 32, 32, 3)
+
+
+def test_dagger_rounds_join_the_training_data_and_are_reloaded_on_resume(tiny_pipeline, tmp_path):
+    from physint_plugins.geeco.dagger import Aggregation
+    from physint_plugins.geeco.train import Chunks, load_controller, load_split
+
+    out, _ = tiny_pipeline
+    run = tmp_path / "dagger"
+    code, stdout, err = call("train", "geeco", "--preset", "tiny", "--data", str(out / "dataset"), "--set",
+                             "train.dagger_epochs=2", "--set", "train.dagger_episodes=3", "--out", str(run), "--json")
+    assert code == 0, err
+    assert json.loads(stdout)["metrics"]["dagger"] == [{"epoch": 2, "rollouts": 3, "train_demos": 11}]
+    saved = np.load(run / "dagger" / "epoch-002.npz")
+    assert saved["rgb"].shape == (3, 100, 32, 32, 3) and np.abs(saved["dee"]).max() <= SPEED + 1e-6
+    # a training resumed after the round reloads it instead of rolling out again
+    ctx = type("Ctx", (), {"seed": 0, "scene": "goal2cube2", "make_sim": None})()
+    demos = load_split(out / "dataset", "train")
+    chunks = Chunks(demos, 8)
+    aggregation = Aggregation(ctx, run, chunks, demos, [2], 3, 100, log=lambda _: None)
+    aggregation(1, load_controller(run)[0])  # make_sim None: rolling out would fail
+    assert chunks.demos == 11 and len(chunks) == 11 * 12
+    assert (chunks[8 * 12]["target"].numpy() == saved["target"][0]).all()  # rollouts keep their own targets
+
+
+def test_dagger_needs_the_push_expert():
+    from physint_cli.errors import BadInput
+    from physint_plugins.geeco.dagger import parse_epochs
+
+    assert parse_epochs("8, 6,10", 12, "push") == [6, 8, 10] and parse_epochs("", 12, "pickplace") == []
+    with pytest.raises(BadInput, match="pick-and-place expert is a plan"):
+        parse_epochs("6", 12, "pickplace")

@@ -43,6 +43,10 @@ class TrainConfig:
                               "whose 2x2 maps at 256 px become 1x1 at 64 px; 4 pushed worse, docs/geeco.md)")
     val_episodes: int = field_(12, "closed-loop validation episodes after each epoch picking the best checkpoint "
                                     "(0: validation loss instead)")
+    dagger_epochs: str = field_("", "comma-separated epochs before which the controller drives the robot from "
+                                    "training start states and the push expert labels what it sees (DAgger, not in "
+                                    "the thesis; '' = off)")
+    dagger_episodes: int = field_(100, "rollouts per DAgger round")
     precision: str = field_("auto", "fp32, bf16, or auto (bf16 where the hardware has it natively)")
 
 

@@ -111,6 +111,11 @@ class Expert:
         self.goal = self.goal + noise
         return np.array([*(action[:3] + noise), action[3]], dtype=float)
 
+    def follow(self, commanded: np.ndarray, executed: np.ndarray) -> None:
+        """The robot executed ``executed`` instead of this expert's last command ``commanded``
+        (a controller drove it, DAgger): the plan follows the hand that was actually sent."""
+        self.goal = self.goal + (np.asarray(executed[:3], dtype=float) - np.asarray(commanded[:3], dtype=float))
+
     def _rest(self, ee: np.ndarray) -> tuple[np.ndarray, int]:
         move = _toward(ee, REST_EE, SPEED)
         if np.linalg.norm(np.asarray(REST_EE) - ee) < 1e-6:

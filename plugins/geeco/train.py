@@ -20,6 +20,7 @@ from physint_cli.method import Context
 
 from . import scenes as S
 from .control import DEE_SCALE, scale_positions
+from .dagger import Aggregation, parse_epochs
 from .model import BUFFER
 
 SCHEDULES = ("cosine", "constant")
@@ -46,13 +47,29 @@ class Chunks:
     the windows ending at steps ``c * L .. c * L + L - 1``."""
 
     def __init__(self, demos: dict[str, np.ndarray], chunk: int, buffer: int = BUFFER):
-        self.d, self.chunk, self.buffer = demos, chunk, buffer
+        self.chunk, self.buffer = chunk, buffer
         self.horizon = demos["rgb"].shape[1]
         self.per_demo = self.horizon // chunk
+        self.d = {k: demos[k] for k in ("rgb", "joints", "dee", "grip")}
+        self.d["target"] = demos["rgb"][:, -1]  # I_T: a demonstration's last frame
         self.pos = {k: scale_positions(demos[k]) for k in ("ee", "obj")}
 
+    @property
+    def demos(self) -> int:
+        return len(self.d["rgb"])
+
+    def extend(self, more: dict[str, np.ndarray]) -> None:
+        """Add episodes of the same horizon (rollouts labelled by the expert, ``dagger.py``) with
+        their own ``target`` images; the next epoch's sampler sees them."""
+        if more["rgb"].shape[1:] != self.d["rgb"].shape[1:]:
+            raise ValueError(f"episodes of shape {more['rgb'].shape[1:]} cannot join {self.d['rgb'].shape[1:]}")
+        for k in self.d:
+            self.d[k] = np.concatenate([self.d[k], more[k]])
+        for k in self.pos:
+            self.pos[k] = np.concatenate([self.pos[k], scale_positions(more[k])])
+
     def __len__(self) -> int:
-        return len(self.d["rgb"]) * self.per_demo
+        return self.demos * self.per_demo
 
     def __getitem__(self, index: int) -> dict[str, Any]:
         import torch
@@ -63,7 +80,7 @@ class Chunks:
         windows = slice(first, first + self.chunk)
         return {"frames": torch.from_numpy(self.d["rgb"][demo, frames]),
                 "joints": torch.from_numpy(self.d["joints"][demo, frames]),
-                "target": torch.from_numpy(self.d["rgb"][demo, -1]),
+                "target": torch.from_numpy(self.d["target"][demo]),
                 "dee": torch.from_numpy(self.d["dee"][demo, windows] / DEE_SCALE),
                 "grip": torch.from_numpy(self.d["grip"][demo, windows].astype(np.int64)),
                 "ee": torch.from_numpy(self.pos["ee"][demo, windows]),
@@ -153,9 +170,14 @@ def train(ctx: Context) -> dict[str, Any]:
         raise BadInput(f"train.min_side must be >= 1, got {cfg.min_side}")
     if cfg.width <= 0 or cfg.lr <= 0 or cfg.aux_weight < 0 or cfg.val_episodes < 0:
         raise BadInput("train.width and train.lr must be > 0, train.aux_weight and train.val_episodes >= 0")
+    rounds = parse_epochs(cfg.dagger_epochs, cfg.epochs, skill)
+    if rounds and cfg.dagger_episodes < 1:
+        raise BadInput(f"train.dagger_episodes must be >= 1, got {cfg.dagger_episodes}")
     model, kwargs = build_model(name, data_cfg["resolution"], cfg.width, cfg.norm, cfg.min_side)
     train_demos, val_demos = load_split(ctx.data, "train"), load_split(ctx.data, "val")
     train_set, val_set = Chunks(train_demos, cfg.chunk), Chunks(val_demos, cfg.chunk)
+    aggregation = Aggregation(ctx, Run(ctx.run).path, train_set, train_demos, rounds, cfg.dagger_episodes,
+                              data_cfg["horizon"], ctx.log) if rounds else None
     ctx.log(f"training {name} on {len(train_demos['rgb'])} {skill} demonstrations of {scene} "
             f"({len(train_set)} chunks of {cfg.chunk} windows), validating on {len(val_demos['rgb'])}")
 
@@ -175,14 +197,14 @@ def train(ctx: Context) -> dict[str, Any]:
     result = fit(model, train_set, val_set, run=Run(ctx.run), epochs=cfg.epochs, batch_size=cfg.batch_size,
                  lr=cfg.lr, loss_fn=loss_fn, metric_fn=metric, make_optimizer=make_optimizer, device=ctx.device, seed=ctx.seed,
                  resume=bool(ctx.options.get("resume")), log=ctx.log, higher_is_better=True,
-                 precision=cfg.precision, batch_transform=to_float_frames,
+                 precision=cfg.precision, batch_transform=to_float_frames, before_epoch=aggregation,
                  meta={"method": "geeco", "model": name, "kwargs": kwargs, "scene": scene, "skill": skill,
                        "backend": manifest["backend"], "horizon": data_cfg["horizon"]})
     _plot_curves(Run(ctx.run), result.history, cfg.val_episodes > 0)
     return {"model": name, "skill": skill, "scene": scene, "epochs": result.epochs,
             "val_metric": result.best_metric, "val_metric_is": "closed-loop task progress" if cfg.val_episodes
             else "minus validation loss (Eq. 6.3)", "train_demos": len(train_demos["rgb"]),
-            "val_demos": len(val_demos["rgb"])}
+            "val_demos": len(val_demos["rgb"]), "dagger": aggregation.stats if aggregation else []}
 
 
 def load_controller(run_dir, device: str = "cpu"):

@@ -1,0 +1,138 @@
+"""Dataset aggregation for the push controller (DAgger, Ross et al. 2011): not in the thesis.
+
+The thesis trained GEECO on 2,000 noise-free demonstrations per skill. With the small preset's
+400, the push controller stalls in states no demonstration shows (docs/geeco.md). Here, at the
+start of the epochs listed in ``train.dagger_epochs``, the controller being trained drives the
+robot from ``train.dagger_episodes`` training start states for H steps, and the push expert,
+a feedback law on the current state (:meth:`Expert._push`), labels every state the controller
+reached with the command it would give there. These labelled rollouts (with the target image
+of their start state) join the training demonstrations for the remaining epochs, so the
+controller learns what to do in the states its own errors lead to.
+
+Only pushing: the pick-and-place expert is a plan with phases (grasp, lift, carry), whose
+command in a state the controller reached need not be the right one.
+Each round is saved in the run (``dagger/epoch-NNN.npz``); a resumed training reloads the
+rounds made before it stopped.
+"""
+
+from __future__ import annotations
+
+import io
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from physint_cli.errors import BadInput
+
+from . import scenes as S
+from .control import Policy, observe
+from .dataset import GRIP_CLASS
+from .expert import Expert
+
+ROLLOUT_FIELDS = ("rgb", "joints", "ee", "obj", "dee", "grip", "target")
+
+
+def parse_epochs(text: str, epochs: int, skill: str) -> list[int]:
+    """``train.dagger_epochs`` ("6,8,10") as sorted epoch numbers; bad values exit 2."""
+    if not str(text).strip():
+        return []
+    try:
+        rounds = sorted({int(v) for v in str(text).split(",") if v.strip()})
+    except ValueError:
+        raise BadInput(f"train.dagger_epochs must be comma-separated epoch numbers, got {text!r}") from None
+    if rounds and not all(2 <= e <= epochs for e in rounds):
+        raise BadInput(f"train.dagger_epochs must lie in [2, train.epochs = {epochs}] (the controller trains on "
+                       f"the demonstrations first), got {text!r}")
+    if rounds and skill != "push":
+        raise BadInput("train.dagger_epochs needs push demonstrations: the pick-and-place expert is a plan, "
+                       "not a feedback law, so it cannot label the states a controller reaches")
+    return rounds
+
+
+def rollout(sim, ep: S.Episode, policy: Policy, target: np.ndarray, horizon: int) -> dict[str, np.ndarray] | None:
+    """The controller drives for ``horizon`` steps from ``ep``'s start state; every step is
+    recorded with the expert's command for that state. None if the controller diverged."""
+    sim.reset(S.build_scene(ep, target.shape[0]))
+    policy.reset(target)
+    expert = Expert(ep)
+    res = target.shape[0]
+    out = {"rgb": np.zeros((horizon, res, res, 3), np.uint8), "joints": np.zeros((horizon, 7), np.float32),
+           "ee": np.zeros((horizon, 3), np.float32), "obj": np.zeros((horizon, 3), np.float32),
+           "dee": np.zeros((horizon, 3), np.float32), "grip": np.zeros(horizon, np.int8)}
+    for t in range(horizon):
+        state = sim.robot.state()
+        rgb = observe(sim, t, False)
+        out["rgb"][t], out["joints"][t], out["ee"][t] = rgb, state.joints, state.ee_pos
+        out["obj"][t] = sim.get_pose(ep.object)[0]
+        label = expert.act(sim)
+        out["dee"][t], out["grip"][t] = label[:3], GRIP_CLASS[int(label[3])]
+        action = policy.act(rgb, np.asarray(state.joints, dtype=np.float32))
+        if not np.all(np.isfinite(action)):
+            return None
+        expert.follow(label, action)
+        sim.robot.act(action)
+    out["target"] = target
+    return out
+
+
+def aggregation_round(make_sim, model, demos: dict[str, np.ndarray], scene: str, episodes: int, horizon: int,
+                      rng: np.random.Generator) -> dict[str, np.ndarray]:
+    """Rollouts of ``model`` from ``episodes`` training start states drawn by ``rng``, stacked."""
+    from .train import episodes_of
+
+    starts = episodes_of(demos, scene, "push")
+    chosen = rng.choice(len(starts), size=min(episodes, len(starts)), replace=False)
+    policy, sim, made = Policy(model), None, []
+    try:
+        for i in chosen:
+            if sim is None:
+                sim = make_sim(S.build_scene(starts[i], demos["rgb"].shape[2]))
+            r = rollout(sim, starts[i], policy, demos["rgb"][i, -1], horizon)
+            if r is not None:
+                made.append(r)
+    finally:
+        if sim is not None:
+            sim.close()
+        model.train()
+    if not made:
+        return {}
+    return {k: np.stack([r[k] for r in made]) for k in ROLLOUT_FIELDS}
+
+
+class Aggregation:
+    """``fit``'s ``before_epoch`` hook: at each epoch of ``rounds`` (1-based), roll out the
+    controller, label with the expert and add the rollouts to ``train_set`` (a ``Chunks``)."""
+
+    def __init__(self, ctx, run_dir: Path, train_set, demos: dict[str, np.ndarray], rounds: list[int],
+                 episodes: int, horizon: int, log=print):
+        self.ctx, self.dir, self.train_set, self.demos = ctx, Path(run_dir) / "dagger", train_set, demos
+        self.rounds, self.episodes, self.horizon, self.log = rounds, episodes, horizon, log
+        self.added: set[int] = set()
+        self.stats: list[dict[str, Any]] = []
+
+    def __call__(self, epoch: int, model) -> None:
+        """Called before training epoch ``epoch`` (0-based) starts; also when resuming there."""
+        from physint_cli.datasets import atomic_write_bytes
+
+        for at in self.rounds:
+            if at > epoch + 1 or at in self.added:
+                continue
+            path = self.dir / f"epoch-{at:03d}.npz"
+            if not path.exists():
+                self.log(f"DAgger round before epoch {at}: the controller drives {self.episodes} training start "
+                         f"states, the expert labels what it sees")
+                rng = np.random.default_rng([self.ctx.seed, at])
+                arrays = aggregation_round(self.ctx.make_sim, model, self.demos, self.ctx.scene, self.episodes,
+                                           self.horizon, rng)
+                buffer = io.BytesIO()
+                np.savez(buffer, **arrays)
+                self.dir.mkdir(parents=True, exist_ok=True)
+                atomic_write_bytes(path, buffer.getvalue())
+            with np.load(path) as saved:
+                arrays = {k: saved[k] for k in saved.files}
+            if arrays:
+                self.train_set.extend(arrays)
+            self.added.add(at)
+            self.stats.append({"epoch": at, "rollouts": len(arrays.get("rgb", ())), "train_demos": self.train_set.demos})
+            self.log(f"training now on {self.train_set.demos} demonstrations and rollouts")
