@@ -215,7 +215,8 @@ def test_bad_training_settings_exit_2(tiny_pipeline, tmp_path):
                              ("train.min_side=0", "train.min_side must be >= 1"),
                              ("train.schedule=step", "train.schedule must be one of cosine, constant"),
                              ("train.dagger_epochs=1", "train.dagger_epochs must lie in [2, train.epochs = 2]"),
-                             ("train.dagger_epochs=two", "train.dagger_epochs must be comma-separated epoch numbers")):
+                             ("train.dagger_epochs=two", "train.dagger_epochs must be comma-separated epoch numbers"),
+                             ("train.dagger_beta=1", "train.dagger_beta must be in [0, 1)")):
         code, _, err = call("train", "geeco", "--preset", "tiny", "--data", str(out / "dataset"), "--set", setting,
                             "--out", str(tmp_path / "r"))
         assert code == 2 and message in err, (setting, err)
@@ -261,7 +262,12 @@ def test_dagger_labels_the_states_a_controller_reaches_with_the_experts_commands
     commands = np.array(controller.commands)
     assert np.allclose(r["dee"][8:], commands[8:, :3], atol=1e-9)
     assert not np.allclose(r["dee"][:8], commands[:8, :3] + [0, 0.01, 0])  # the detour is not what it labels
-    assert (r["target"] == demos["rgb"][0, -1]).all() and r["rgb"].shape == (100, 32, 32, 3)
+    assert (r["target"] == demos["rgb"][0, -1]).all() and r["rgb"].shape == (100, 32, 32, 3) and r["on_target"]
+    # a controller that never moves, overruled by the expert at a step's chance of beta
+    still = type("Still", (), {"reset": lambda self, target: None, "act": lambda self, rgb, joints: np.zeros(4)})()
+    with pb.make("mujoco", S.build_scene(ep, 32)) as sim:
+        assert not rollout(sim, ep, still, demos["rgb"][0, -1], 100)["on_target"]
+        assert rollout(sim, ep, still, demos["rgb"][0, -1], 100, beta=0.95, rng=np.random.default_rng(0))["on_target"]
 
 
 def test_dagger_rounds_join_the_training_data_and_are_reloaded_on_resume(tiny_pipeline, tmp_path):
@@ -273,7 +279,8 @@ def test_dagger_rounds_join_the_training_data_and_are_reloaded_on_resume(tiny_pi
     code, stdout, err = call("train", "geeco", "--preset", "tiny", "--data", str(out / "dataset"), "--set",
                              "train.dagger_epochs=2", "--set", "train.dagger_episodes=3", "--out", str(run), "--json")
     assert code == 0, err
-    assert json.loads(stdout)["metrics"]["dagger"] == [{"epoch": 2, "rollouts": 3, "train_demos": 11}]
+    (stats,) = json.loads(stdout)["metrics"]["dagger"]
+    assert stats["epoch"] == 2 and stats["rollouts"] == 3 and stats["train_demos"] == 11 and 0 <= stats["on_target"] <= 1
     saved = np.load(run / "dagger" / "epoch-002.npz")
     assert saved["rgb"].shape == (3, 100, 32, 32, 3) and np.abs(saved["dee"]).max() <= SPEED + 1e-6
     # a training resumed after the round reloads it instead of rolling out again
@@ -281,6 +288,7 @@ def test_dagger_rounds_join_the_training_data_and_are_reloaded_on_resume(tiny_pi
     demos = load_split(out / "dataset", "train")
     chunks = Chunks(demos, 8)
     aggregation = Aggregation(ctx, run, chunks, demos, [2], 3, 100, log=lambda _: None)
+    assert saved["on_target"].shape == (3,)
     aggregation(1, load_controller(run)[0])  # make_sim None: rolling out would fail
     assert chunks.demos == 11 and len(chunks) == 11 * 12
     assert (chunks[8 * 12]["target"].numpy() == saved["target"][0]).all()  # rollouts keep their own targets

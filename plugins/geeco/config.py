@@ -47,6 +47,8 @@ class TrainConfig:
                                     "training start states and the push expert labels what it sees (DAgger, not in "
                                     "the thesis; '' = off)")
     dagger_episodes: int = field_(100, "rollouts per DAgger round")
+    dagger_beta: float = field_(0.0, "probability that a rollout step executes the expert's command instead of "
+                                     "the controller's (beta of DAgger)")
     precision: str = field_("auto", "fp32, bf16, or auto (bf16 where the hardware has it natively)")
 
 

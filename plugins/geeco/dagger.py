@@ -3,7 +3,9 @@
 The thesis trained GEECO on 2,000 noise-free demonstrations per skill. With the small preset's
 400, the push controller stalls in states no demonstration shows (docs/geeco.md). Here, at the
 start of the epochs listed in ``train.dagger_epochs``, the controller being trained drives the
-robot from ``train.dagger_episodes`` training start states for H steps, and the push expert,
+robot from ``train.dagger_episodes`` training start states for H steps (at each step, with
+probability ``train.dagger_beta``, the expert's command is executed instead: beta_i of Ross et
+al.), and the push expert,
 a feedback law on the current state (:meth:`Expert._push`), labels every state the controller
 reached with the command it would give there. These labelled rollouts (with the target image
 of their start state) join the training demonstrations for the remaining epochs, so the
@@ -28,7 +30,7 @@ from physint_cli.errors import BadInput
 from . import scenes as S
 from .control import Policy, observe
 from .dataset import GRIP_CLASS
-from .expert import Expert
+from .expert import Expert, on_target
 
 ROLLOUT_FIELDS = ("rgb", "joints", "ee", "obj", "dee", "grip", "target")
 
@@ -50,9 +52,12 @@ def parse_epochs(text: str, epochs: int, skill: str) -> list[int]:
     return rounds
 
 
-def rollout(sim, ep: S.Episode, policy: Policy, target: np.ndarray, horizon: int) -> dict[str, np.ndarray] | None:
-    """The controller drives for ``horizon`` steps from ``ep``'s start state; every step is
-    recorded with the expert's command for that state. None if the controller diverged."""
+def rollout(sim, ep: S.Episode, policy: Policy, target: np.ndarray, horizon: int, beta: float = 0.0,
+            rng: np.random.Generator | None = None) -> dict[str, np.ndarray] | None:
+    """The controller drives for ``horizon`` steps from ``ep``'s start state (with probability
+    ``beta`` a step executes the expert's command instead); every step is recorded with the
+    expert's command for that state, and ``on_target`` says whether the object ended on its
+    target. None if the controller diverged."""
     sim.reset(S.build_scene(ep, target.shape[0]))
     policy.reset(target)
     expert = Expert(ep)
@@ -70,14 +75,17 @@ def rollout(sim, ep: S.Episode, policy: Policy, target: np.ndarray, horizon: int
         action = policy.act(rgb, np.asarray(state.joints, dtype=np.float32))
         if not np.all(np.isfinite(action)):
             return None
+        if beta > 0 and rng.random() < beta:
+            action = label
         expert.follow(label, action)
         sim.robot.act(action)
     out["target"] = target
+    out["on_target"] = np.bool_(on_target(ep, sim))
     return out
 
 
 def aggregation_round(make_sim, model, demos: dict[str, np.ndarray], scene: str, episodes: int, horizon: int,
-                      rng: np.random.Generator) -> dict[str, np.ndarray]:
+                      rng: np.random.Generator, beta: float = 0.0) -> dict[str, np.ndarray]:
     """Rollouts of ``model`` from ``episodes`` training start states drawn by ``rng``, stacked."""
     from .train import episodes_of
 
@@ -88,7 +96,7 @@ def aggregation_round(make_sim, model, demos: dict[str, np.ndarray], scene: str,
         for i in chosen:
             if sim is None:
                 sim = make_sim(S.build_scene(starts[i], demos["rgb"].shape[2]))
-            r = rollout(sim, starts[i], policy, demos["rgb"][i, -1], horizon)
+            r = rollout(sim, starts[i], policy, demos["rgb"][i, -1], horizon, beta, rng)
             if r is not None:
                 made.append(r)
     finally:
@@ -97,7 +105,7 @@ def aggregation_round(make_sim, model, demos: dict[str, np.ndarray], scene: str,
         model.train()
     if not made:
         return {}
-    return {k: np.stack([r[k] for r in made]) for k in ROLLOUT_FIELDS}
+    return {k: np.stack([r[k] for r in made]) for k in (*ROLLOUT_FIELDS, "on_target")}
 
 
 class Aggregation:
@@ -105,9 +113,9 @@ class Aggregation:
     controller, label with the expert and add the rollouts to ``train_set`` (a ``Chunks``)."""
 
     def __init__(self, ctx, run_dir: Path, train_set, demos: dict[str, np.ndarray], rounds: list[int],
-                 episodes: int, horizon: int, log=print):
+                 episodes: int, horizon: int, beta: float = 0.0, log=print):
         self.ctx, self.dir, self.train_set, self.demos = ctx, Path(run_dir) / "dagger", train_set, demos
-        self.rounds, self.episodes, self.horizon, self.log = rounds, episodes, horizon, log
+        self.rounds, self.episodes, self.horizon, self.beta, self.log = rounds, episodes, horizon, beta, log
         self.added: set[int] = set()
         self.stats: list[dict[str, Any]] = []
 
@@ -124,7 +132,7 @@ class Aggregation:
                          f"states, the expert labels what it sees")
                 rng = np.random.default_rng([self.ctx.seed, at])
                 arrays = aggregation_round(self.ctx.make_sim, model, self.demos, self.ctx.scene, self.episodes,
-                                           self.horizon, rng)
+                                           self.horizon, rng, self.beta)
                 buffer = io.BytesIO()
                 np.savez(buffer, **arrays)
                 self.dir.mkdir(parents=True, exist_ok=True)
@@ -134,5 +142,7 @@ class Aggregation:
             if arrays:
                 self.train_set.extend(arrays)
             self.added.add(at)
-            self.stats.append({"epoch": at, "rollouts": len(arrays.get("rgb", ())), "train_demos": self.train_set.demos})
+            done = arrays.get("on_target", np.zeros(0, bool))
+            self.stats.append({"epoch": at, "rollouts": len(done), "on_target": float(done.mean()) if len(done) else None,
+                               "train_demos": self.train_set.demos})
             self.log(f"training now on {self.train_set.demos} demonstrations and rollouts")

@@ -173,11 +173,13 @@ def train(ctx: Context) -> dict[str, Any]:
     rounds = parse_epochs(cfg.dagger_epochs, cfg.epochs, skill)
     if rounds and cfg.dagger_episodes < 1:
         raise BadInput(f"train.dagger_episodes must be >= 1, got {cfg.dagger_episodes}")
+    if not 0 <= cfg.dagger_beta < 1:
+        raise BadInput(f"train.dagger_beta must be in [0, 1), got {cfg.dagger_beta}")
     model, kwargs = build_model(name, data_cfg["resolution"], cfg.width, cfg.norm, cfg.min_side)
     train_demos, val_demos = load_split(ctx.data, "train"), load_split(ctx.data, "val")
     train_set, val_set = Chunks(train_demos, cfg.chunk), Chunks(val_demos, cfg.chunk)
     aggregation = Aggregation(ctx, Run(ctx.run).path, train_set, train_demos, rounds, cfg.dagger_episodes,
-                              data_cfg["horizon"], ctx.log) if rounds else None
+                              data_cfg["horizon"], cfg.dagger_beta, ctx.log) if rounds else None
     ctx.log(f"training {name} on {len(train_demos['rgb'])} {skill} demonstrations of {scene} "
             f"({len(train_set)} chunks of {cfg.chunk} windows), validating on {len(val_demos['rgb'])}")
 
