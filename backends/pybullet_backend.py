@@ -487,7 +487,8 @@ class PybulletSimulation(Simulation):
             side_uv = np.concatenate([np.column_stack([angle / (2 * np.pi), np.full(n + 1, v)]) for v in (0.0, 1.0)])
             side_n = np.concatenate([np.column_stack([ring, np.zeros(n + 1)])] * 2)
             k = np.arange(n)
-            side_tri = np.concatenate([np.stack([k, k + 1, n + 1 + k + 1], 1), np.stack([k, n + 1 + k + 1, n + 1 + k], 1)])
+            bottom, top = k, n + 1 + k  # column k's two vertices; column k + 1's are bottom + 1, top + 1
+            side_tri = np.concatenate([np.stack([bottom, bottom + 1, top + 1], 1), np.stack([bottom, top + 1, top], 1)])
             positions, uvs, normals, triangles = [side], [side_uv], [side_n], [side_tri]
             count = len(side)
             for z, up in ((half, 1.0), (-half, -1.0)):  # caps: a centre and a ring, normal along the axis

@@ -97,7 +97,8 @@ def dataset_cache_dir(ctx: Context, splits: tuple[str, ...] | None = None) -> Pa
     """Where the dataset of ``ctx`` is cached; ``splits``: the cache of only those splits' shards."""
     section = getattr(ctx.config, "data", ctx.config)
     only = "-" + "+".join(sorted(splits)) if splits else ""
-    return home() / "datasets" / f"{ctx.method}-{ctx.scene}-{ctx.backend}-{ctx.preset}-s{ctx.seed}-{configs.fingerprint(section)}{only}"
+    name = f"{ctx.method}-{ctx.scene}-{ctx.backend}-{ctx.preset}-s{ctx.seed}-{configs.fingerprint(section)}{only}"
+    return home() / "datasets" / name
 
 
 def _generate_unit(method: Any, ctx: Context, unit: Unit) -> dict[str, Any]:

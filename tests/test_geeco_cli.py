@@ -280,7 +280,7 @@ def test_dagger_rounds_join_the_training_data_and_are_reloaded_on_resume(tiny_pi
                              "train.dagger_epochs=2", "--set", "train.dagger_episodes=3", "--out", str(run), "--json")
     assert code == 0, err
     (stats,) = json.loads(stdout)["metrics"]["dagger"]
-    assert stats["epoch"] == 2 and stats["rollouts"] == 3 and stats["train_demos"] == 11 and 0 <= stats["on_target"] <= 1
+    assert (stats["epoch"], stats["rollouts"], stats["train_demos"]) == (2, 3, 11) and 0 <= stats["on_target"] <= 1
     saved = np.load(run / "dagger" / "epoch-002.npz")
     assert saved["rgb"].shape == (3, 100, 32, 32, 3) and np.abs(saved["dee"]).max() <= SPEED + 1e-6
     # a training resumed after the round reloads it instead of rolling out again

@@ -143,6 +143,6 @@ class Aggregation:
                 self.train_set.extend(arrays)
             self.added.add(at)
             done = arrays.get("on_target", np.zeros(0, bool))
-            self.stats.append({"epoch": at, "rollouts": len(done), "on_target": float(done.mean()) if len(done) else None,
-                               "train_demos": self.train_set.demos})
+            self.stats.append({"epoch": at, "rollouts": len(done), "train_demos": self.train_set.demos,
+                               "on_target": float(done.mean()) if len(done) else None})
             self.log(f"training now on {self.train_set.demos} demonstrations and rollouts")
