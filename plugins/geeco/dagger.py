@@ -29,7 +29,7 @@ from physint_cli.errors import BadInput
 
 from . import scenes as S
 from .control import Policy, observe
-from .dataset import GRIP_CLASS
+from .dataset import empty_episode, record_step
 from .expert import Expert, on_target
 
 ROLLOUT_FIELDS = ("rgb", "joints", "ee", "obj", "dee", "grip", "target")
@@ -61,17 +61,11 @@ def rollout(sim, ep: S.Episode, policy: Policy, target: np.ndarray, horizon: int
     sim.reset(S.build_scene(ep, target.shape[0]))
     policy.reset(target)
     expert = Expert(ep)
-    res = target.shape[0]
-    out = {"rgb": np.zeros((horizon, res, res, 3), np.uint8), "joints": np.zeros((horizon, 7), np.float32),
-           "ee": np.zeros((horizon, 3), np.float32), "obj": np.zeros((horizon, 3), np.float32),
-           "dee": np.zeros((horizon, 3), np.float32), "grip": np.zeros(horizon, np.int8)}
+    out = empty_episode(horizon, target.shape[0])
     for t in range(horizon):
-        state = sim.robot.state()
-        rgb = observe(sim, t, False)
-        out["rgb"][t], out["joints"][t], out["ee"][t] = rgb, state.joints, state.ee_pos
-        out["obj"][t] = sim.get_pose(ep.object)[0]
+        state, rgb = sim.robot.state(), observe(sim, t, False)
         label = expert.act(sim)
-        out["dee"][t], out["grip"][t] = label[:3], GRIP_CLASS[int(label[3])]
+        record_step(out, t, sim, ep, state, rgb, label)
         action = policy.act(rgb, np.asarray(state.joints, dtype=np.float32))
         if not np.all(np.isfinite(action)):
             return None
@@ -127,7 +121,10 @@ class Aggregation:
             if at > epoch + 1 or at in self.added:
                 continue
             path = self.dir / f"epoch-{at:03d}.npz"
-            if not path.exists():
+            if path.exists():  # made before a resume
+                with np.load(path) as saved:
+                    arrays = {k: saved[k] for k in saved.files}
+            else:
                 self.log(f"DAgger round before epoch {at}: the controller drives {self.episodes} training start "
                          f"states, the expert labels what it sees")
                 rng = np.random.default_rng([self.ctx.seed, at])
@@ -137,8 +134,6 @@ class Aggregation:
                 np.savez(buffer, **arrays)
                 self.dir.mkdir(parents=True, exist_ok=True)
                 atomic_write_bytes(path, buffer.getvalue())
-            with np.load(path) as saved:
-                arrays = {k: saved[k] for k in saved.files}
             if arrays:
                 self.train_set.extend(arrays)
             self.added.add(at)

@@ -60,20 +60,12 @@ def record(sim, ep: S.Episode, horizon: int, noise: float = 0.0, rng: np.random.
     ``noise`` > 0 the executed displacements are perturbed (``Expert.perturb``), the recorded
     commands are the expert's own."""
     expert = Expert(ep)
-    res = ep_resolution(sim)
-    out = {"rgb": np.zeros((horizon, res, res, 3), np.uint8), "joints": np.zeros((horizon, 7), np.float32),
-           "ee": np.zeros((horizon, 3), np.float32), "obj": np.zeros((horizon, 3), np.float32),
-           "dee": np.zeros((horizon, 3), np.float32), "grip": np.zeros(horizon, np.int8)}
+    out = empty_episode(horizon, ep_resolution(sim))
     done_at = None
     for t in range(horizon):
-        state = sim.robot.state()
-        out["rgb"][t] = sim.render("front").rgb
-        out["joints"][t] = state.joints
-        out["ee"][t] = state.ee_pos
-        out["obj"][t] = sim.get_pose(ep.object)[0]
+        state, rgb = sim.robot.state(), sim.render("front").rgb
         action = expert.act(sim)
-        out["dee"][t] = action[:3]
-        out["grip"][t] = GRIP_CLASS[int(action[3])]
+        record_step(out, t, sim, ep, state, rgb, action)
         if noise > 0:
             action = expert.perturb(action, rng.normal(0.0, noise, 3))
         sim.robot.act(action)
@@ -81,6 +73,22 @@ def record(sim, ep: S.Episode, horizon: int, noise: float = 0.0, rng: np.random.
             done_at = t
     ok = on_target(ep, sim) and done_at is not None and done_at <= horizon - SETTLE_STEPS
     return out, ok
+
+
+def empty_episode(horizon: int, resolution: int) -> dict[str, np.ndarray]:
+    """The per-step arrays of one recorded episode, zeroed."""
+    return {"rgb": np.zeros((horizon, resolution, resolution, 3), np.uint8),
+            "joints": np.zeros((horizon, 7), np.float32), "ee": np.zeros((horizon, 3), np.float32),
+            "obj": np.zeros((horizon, 3), np.float32), "dee": np.zeros((horizon, 3), np.float32),
+            "grip": np.zeros(horizon, np.int8)}
+
+
+def record_step(out: dict[str, np.ndarray], t: int, sim, ep: S.Episode, state, rgb: np.ndarray,
+                command: np.ndarray) -> None:
+    """Step ``t``: the frame, the robot's state and object position, and the expert's ``command``."""
+    out["rgb"][t], out["joints"][t], out["ee"][t] = rgb, state.joints, state.ee_pos
+    out["obj"][t] = sim.get_pose(ep.object)[0]
+    out["dee"][t], out["grip"][t] = command[:3], GRIP_CLASS[int(command[3])]
 
 
 def ep_resolution(sim) -> int:

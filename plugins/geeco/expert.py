@@ -108,8 +108,9 @@ class Expert:
         shows a learner how to recover from its own errors (DART, Laskey et al. 2017)."""
         if self.done or self.phase in SETTLING or not np.any(action[:3]):
             return action
-        self.goal = self.goal + noise
-        return np.array([*(action[:3] + noise), action[3]], dtype=float)
+        executed = np.array([*(action[:3] + noise), action[3]], dtype=float)
+        self.follow(action, executed)
+        return executed
 
     def follow(self, commanded: np.ndarray, executed: np.ndarray) -> None:
         """The robot executed ``executed`` instead of this expert's last command ``commanded``
