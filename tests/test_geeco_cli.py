@@ -213,6 +213,7 @@ def test_bad_training_settings_exit_2(tiny_pipeline, tmp_path):
                              ("train.chunk=0", "train.chunk must be in [1, 100]"),
                              ("train.epochs=0", "train.epochs must be >= 1"),
                              ("train.min_side=0", "train.min_side must be >= 1"),
+                             ("train.stem_stride=3", "train.stem_stride must be 1 or 2"),
                              ("train.schedule=step", "train.schedule must be one of cosine, constant"),
                              ("train.dagger_epochs=1", "train.dagger_epochs must lie in [2, train.epochs = 2]"),
                              ("train.dagger_epochs=two", "train.dagger_epochs must be comma-separated epoch numbers"),

@@ -155,20 +155,39 @@ def test_a_cube_left_beside_its_pad_is_not_on_target():
 def test_encoders_halve_their_maps_as_table_6a1_unless_told_to_keep_a_spatial_map():
     from physint_plugins.geeco.model import Encoder
 
-    def side(size, min_side):
-        return Encoder(0.25, image_size=size, min_side=min_side)(torch.rand(1, 3, size, size)).shape[-1]
+    def side(size, min_side, stem_stride=1):
+        encoder = Encoder(0.25, image_size=size, min_side=min_side, stem_stride=stem_stride)
+        return encoder(torch.rand(1, 3, size, size)).shape[-1]
 
     assert side(256, 1) == 2 and side(64, 1) == 1  # the thesis's strides: 2x2 at 256 px, 1x1 at 64 px
     assert side(64, 4) == 4 and side(32, 4) == 4 and side(256, 4) == 4  # train.min_side
+    assert side(128, 4, 2) == 4 and side(16, 4, 2) == 4 and side(512, 1, 2) == 2  # train.stem_stride
+
+
+def test_a_strided_stem_gives_a_128_px_frame_the_maps_of_a_64_px_one():
+    """train.stem_stride=2: the first convolution halves a 128 px frame, so every later layer
+    works on maps of the sizes a 64 px frame gets with Table 6.A.1's strides (and costs as much)."""
+    from physint_plugins.geeco.model import Encoder
+
+    def maps(size, stem_stride):
+        shapes, x = [], torch.rand(1, 3, size, size)
+        encoder = Encoder(0.25, image_size=size, stem_stride=stem_stride)
+        for conv, norm in zip(encoder.convs, encoder.norms):
+            x = conv(x)
+            shapes.append(tuple(x.shape[1:]))
+        return shapes
+
+    assert maps(128, 2) == maps(64, 1)
+    assert maps(128, 1)[0] == (8, 128, 128)  # Table 6.A.1: the first layer keeps the frame's size
 
 
 @pytest.mark.parametrize("variant", ["geeco-f", "geeco-d", "geeco-r", "e2evmc"])
-@pytest.mark.parametrize("min_side", [1, 4])
-def test_a_chunk_answers_each_window_as_the_window_alone_would(variant, min_side):
+@pytest.mark.parametrize("min_side,stem_stride", [(1, 1), (4, 1), (1, 2)])
+def test_a_chunk_answers_each_window_as_the_window_alone_would(variant, min_side, stem_stride):
     from physint_plugins.geeco.model import Geeco
 
     torch.manual_seed(0)
-    model = Geeco(variant, image_size=32, width=0.25, min_side=min_side).eval()
+    model = Geeco(variant, image_size=32, width=0.25, min_side=min_side, stem_stride=stem_stride).eval()
     frames, joints, target = torch.rand(2, 7, 3, 32, 32), torch.randn(2, 7, 7), torch.rand(2, 3, 32, 32)
     with torch.no_grad():
         chunk = model(frames, joints, target)

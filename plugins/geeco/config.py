@@ -41,6 +41,8 @@ class TrainConfig:
                               "encoders learned the commands slower, see docs/geeco.md)")
     min_side: int = field_(1, "the encoders stop halving their maps at this side (1: Table 6.A.1's strides, "
                               "whose 2x2 maps at 256 px become 1x1 at 64 px; 4 pushed worse, docs/geeco.md)")
+    stem_stride: int = field_(1, "stride of the encoders' first convolution (1: Table 6.A.1; 2 halves the frame "
+                                 "there, so 128 px frames cost about what 64 px frames do)")
     val_episodes: int = field_(12, "closed-loop validation episodes after each epoch picking the best checkpoint "
                                     "(0: validation loss instead)")
     dagger_epochs: str = field_("", "comma-separated epochs before which the controller drives the robot from "

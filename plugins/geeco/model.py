@@ -48,12 +48,13 @@ class Encoder(nn.Module):
     are the cheapest layers of the encoder.
     """
 
-    def __init__(self, width: float = 1.0, norm: bool = False, image_size: int = 256, min_side: int = 1):
+    def __init__(self, width: float = 1.0, norm: bool = False, image_size: int = 256, min_side: int = 1,
+                 stem_stride: int = 1):
         super().__init__()
         layers: list[nn.Module] = []
         norms: list[nn.Module] = []
         channels = 3
-        for i, (filters, stride) in enumerate(zip(ENCODER_FILTERS, strides(image_size, min_side))):
+        for i, (filters, stride) in enumerate(zip(ENCODER_FILTERS, strides(image_size, min_side, stem_stride))):
             out = max(4, int(round(filters * width)))
             layers.append(nn.Conv2d(channels, out, 3, stride=stride, padding=1))
             norms.append(nn.GroupNorm(min(8, out // 4), out) if norm else nn.Identity())
@@ -71,42 +72,46 @@ class Encoder(nn.Module):
         return x
 
 
-def strides(size: int, min_side: int = 1) -> list[int]:
+def strides(size: int, min_side: int = 1, stem_stride: int = 1) -> list[int]:
     """Table 6.A.1's strides (1, then 2), except that a map is not halved below ``min_side``: at
     256 px the last map is 2x2 (the thesis); at 64 px it would be 1x1, and ``min_side`` = 4 keeps
-    where things are in a 4x4 map instead of squeezing it into the channels."""
+    where things are in a 4x4 map instead of squeezing it into the channels. ``stem_stride`` = 2
+    halves the frame in the first convolution too: a 128 px frame then costs about what a 64 px
+    one does with Table 6.A.1's strides, while the first layer still sees every pixel."""
     out, side = [], size
     for i in range(len(ENCODER_FILTERS)):
-        stride = 1 if i == 0 or side <= min_side or (side + 1) // 2 < min_side else 2
+        first = stem_stride if side > min_side else 1
+        stride = first if i == 0 else 1 if side <= min_side or (side + 1) // 2 < min_side else 2
         out.append(stride)
         side = (side + stride - 1) // stride
     return out
 
 
-def encoder(width: float = 1.0, norm: bool = False, image_size: int = 256, min_side: int = 1) -> Encoder:
-    return Encoder(width, norm, image_size, min_side)
+def encoder(width: float = 1.0, norm: bool = False, image_size: int = 256, min_side: int = 1,
+            stem_stride: int = 1) -> Encoder:
+    return Encoder(width, norm, image_size, min_side, stem_stride)
 
 
-def feature_shape(size: int, width: float, min_side: int = 1) -> tuple[int, int]:
+def feature_shape(size: int, width: float, min_side: int = 1, stem_stride: int = 1) -> tuple[int, int]:
     """(channels, side) of an encoder's output for ``size`` x ``size`` input."""
     side = size
-    for stride in strides(size, min_side):
+    for stride in strides(size, min_side, stem_stride):
         side = (side + stride - 1) // stride
     return max(4, int(round(ENCODER_FILTERS[-1] * width))), side
 
 
 class Geeco(nn.Module):
     def __init__(self, variant: str = "geeco-f", image_size: int = 64, width: float = 1.0, buffer: int = BUFFER,
-                 norm: bool = False, min_side: int = 1):
+                 norm: bool = False, min_side: int = 1, stem_stride: int = 1):
         super().__init__()
         if variant not in VARIANTS:
             raise ValueError(f"variant {variant!r} is not known; valid: {', '.join(VARIANTS)}")
         self.variant, self.image_size, self.width, self.buffer = variant, image_size, width, buffer
-        enc = dict(width=width, norm=norm, image_size=image_size, min_side=min_side)
+        enc = dict(width=width, norm=norm, image_size=image_size, min_side=min_side, stem_stride=stem_stride)
         self.obs = encoder(**enc)  # psi_OBS
         self.dyn = encoder(**enc) if variant == "geeco-f" else None  # psi_DYN
         self.diff = encoder(**enc) if variant in ("geeco-f", "geeco-d") else None  # psi_DIFF
-        channels, side = feature_shape(image_size, width, min_side)
+        channels, side = feature_shape(image_size, width, min_side, stem_stride)
         maps = {"geeco-f": 3, "geeco-d": 2, "geeco-r": 2, "e2evmc": 1}[variant]
         self.state_size = (maps * channels + JOINTS) * side * side
         self.lstm = nn.LSTM(self.state_size, HIDDEN, batch_first=True)
