@@ -11,7 +11,7 @@ import functools
 import os
 import shutil
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -217,6 +217,10 @@ def run_train(opts: Options) -> dict[str, Any]:
         resume_run = open_run(opts.run, opts.method, need_checkpoint=False) if opts.run else \
             latest_run(opts.method, "train", need_checkpoint=True)
         base = {**resume_run.info, "_config_file": resume_run.path / "config.yaml"}
+        trained = (base.get("options") or {}).get("model")  # a run started with --model goes on with it
+        if opts.model and trained and opts.model != trained:
+            raise BadInput(f"--resume: {resume_run.path} trains model {trained!r}; --model {opts.model} cannot continue it")
+        opts = replace(opts, model=opts.model or trained)
     method, ctx = make_context(opts, base)
     data = ensure_dataset(method, ctx, opts.data or (Path(base["data"]) if base.get("data") else None))
     scene = read_manifest(data, ctx.method).get("scene")
@@ -288,8 +292,6 @@ def run_deploy(opts: Options) -> dict[str, Any]:
 
 def run_pipeline(opts: Options) -> dict[str, Any]:
     """dataset -> train -> eval -> deploy, each in its own directory under --out (or the home)."""
-    from dataclasses import replace
-
     t0 = time.perf_counter()
     root = Path(opts.out) if opts.out else None
     if root is not None:

@@ -179,6 +179,19 @@ def test_train_caches_dataset_resumes_and_evaluates(toy_plugins, physint_home):
     assert j(out)["metrics"]["target"] == "hello"
 
 
+def test_a_run_started_with_model_resumes_with_that_model(toy_plugins, physint_home):
+    """--model is not part of the config file: the run's own record says which network to rebuild."""
+    run = physint_home / "mlp"
+    code, _, err = call("train", "toy", "--preset", "tiny", "--model", "mlp", "--set", "train.epochs=2",
+                        "--out", str(run))
+    assert code == 0, err
+    code, out, err = call("train", "toy", "--resume", "--run", str(run), "--set", "train.epochs=3", "--json")
+    assert code == 0, err
+    assert "resumed from" in err and j(out)["metrics"]["model"] == "mlp"
+    code, _, err = call("train", "toy", "--resume", "--run", str(run), "--model", "linear")
+    assert code == 2 and "trains model 'mlp'; --model linear cannot continue it" in err
+
+
 def test_eval_units_run_in_worker_processes(toy_plugins):
     assert call("train", "toy", "--preset", "tiny", "--set", "train.epochs=1")[0] == 0
     code, out, err = call("eval", "toy", "--workers", "2", "--json")

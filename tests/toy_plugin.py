@@ -44,6 +44,15 @@ def linear(**_):
     return torch.nn.Linear(1, 1)
 
 
+def mlp(**_):
+    import torch
+
+    return torch.nn.Sequential(torch.nn.Linear(1, 8), torch.nn.Tanh(), torch.nn.Linear(8, 1))
+
+
+MODELS = {"linear": linear, "mlp": mlp}
+
+
 def eval_unit(ctx, unit):
     rng = np.random.default_rng(unit.seed)
     return {"pid": os.getpid(), "x": rng.uniform(-1, 1, unit.count).tolist()}
@@ -86,11 +95,12 @@ class Toy(Method):
         tr = ShardedDataset(ctx.data, "train", ["x", "y"], transform=tensors, method="toy")
         va = ShardedDataset(ctx.data, "val", ["x", "y"], transform=tensors, method="toy")
         c = ctx.config.train
-        res = fit(linear(), tr, va, run=Run(ctx.run), epochs=c.epochs, batch_size=c.batch_size, lr=c.lr,
+        name = ctx.options.get("model", self.default_model)
+        res = fit(MODELS[name](), tr, va, run=Run(ctx.run), epochs=c.epochs, batch_size=c.batch_size, lr=c.lr,
                   loss_fn=lambda m, b: torch.nn.functional.mse_loss(m(b["x"]), b["y"]),
                   metric_fn=lambda m, loader: float(sum(torch.nn.functional.mse_loss(m(b["x"]), b["y"], reduction="sum") for b in loader) / len(loader.dataset)),
-                  seed=ctx.seed, resume=bool(ctx.options.get("resume")), log=ctx.log, meta={"model": "linear"})
-        return {"val_mse": res.best_metric, "epochs": res.epochs}
+                  seed=ctx.seed, resume=bool(ctx.options.get("resume")), log=ctx.log, meta={"model": name})
+        return {"val_mse": res.best_metric, "epochs": res.epochs, "model": name}
 
     def evaluate(self, ctx):
         units = split_units({"eval": 8}, 2, ctx.seed)
@@ -109,3 +119,4 @@ def register_methods(register):
 @hookimpl
 def register_models(register):
     register(ModelInfo("linear", method="toy", build=linear))
+    register(ModelInfo("mlp", method="toy", build=mlp))
