@@ -80,8 +80,8 @@ def strides(size: int, min_side: int = 1, stem_stride: int = 1) -> list[int]:
     one does with Table 6.A.1's strides, while the first layer still sees every pixel."""
     out, side = [], size
     for i in range(len(ENCODER_FILTERS)):
-        first = stem_stride if side > min_side else 1
-        stride = first if i == 0 else 1 if side <= min_side or (side + 1) // 2 < min_side else 2
+        halve = side > min_side and (side + 1) // 2 >= min_side
+        stride = (stem_stride if i == 0 else 2) if halve else 1
         out.append(stride)
         side = (side + stride - 1) // stride
     return out
