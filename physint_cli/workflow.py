@@ -80,6 +80,9 @@ def make_context(opts: Options, base: dict[str, Any] | None = None) -> tuple[Any
         if opts.model not in models:
             raise unknown(f"model for method {method.name!r}:", opts.model, models)
         options["model"] = opts.model
+        train_section = getattr(cfg, "train", None)
+        if hasattr(train_section, "model"):  # so the run's config.yaml says which network it trains
+            train_section.model = opts.model
     for key in ("task", "target", "episodes"):
         if getattr(opts, key) is not None:
             options[key] = getattr(opts, key)

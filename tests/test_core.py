@@ -185,6 +185,7 @@ def test_a_run_started_with_model_resumes_with_that_model(toy_plugins, physint_h
     code, _, err = call("train", "toy", "--preset", "tiny", "--model", "mlp", "--set", "train.epochs=2",
                         "--out", str(run))
     assert code == 0, err
+    assert "model: mlp" in (run / "config.yaml").read_text()
     code, out, err = call("train", "toy", "--resume", "--run", str(run), "--set", "train.epochs=3", "--json")
     assert code == 0, err
     assert "resumed from" in err and j(out)["metrics"]["model"] == "mlp"

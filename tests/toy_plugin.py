@@ -30,6 +30,7 @@ class Train:
     epochs: int = field_(20, "epochs")
     lr: float = field_(0.05, "learning rate")
     batch_size: int = field_(16, "batch size")
+    model: str = field_("linear", "linear or mlp")
 
 
 @dataclass
@@ -95,7 +96,7 @@ class Toy(Method):
         tr = ShardedDataset(ctx.data, "train", ["x", "y"], transform=tensors, method="toy")
         va = ShardedDataset(ctx.data, "val", ["x", "y"], transform=tensors, method="toy")
         c = ctx.config.train
-        name = ctx.options.get("model", self.default_model)
+        name = ctx.options.get("model", c.model)
         res = fit(MODELS[name](), tr, va, run=Run(ctx.run), epochs=c.epochs, batch_size=c.batch_size, lr=c.lr,
                   loss_fn=lambda m, b: torch.nn.functional.mse_loss(m(b["x"]), b["y"]),
                   metric_fn=lambda m, loader: float(sum(torch.nn.functional.mse_loss(m(b["x"]), b["y"], reduction="sum") for b in loader) / len(loader.dataset)),
