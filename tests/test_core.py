@@ -180,7 +180,8 @@ def test_train_caches_dataset_resumes_and_evaluates(toy_plugins, physint_home):
 
 
 def test_a_run_started_with_model_resumes_with_that_model(toy_plugins, physint_home):
-    """--model is not part of the config file: the run's own record says which network to rebuild."""
+    """The run records the network --model chose (config.yaml's train.model, run.json's options);
+    --resume rebuilds that one, and refuses another."""
     run = physint_home / "mlp"
     code, _, err = call("train", "toy", "--preset", "tiny", "--model", "mlp", "--set", "train.epochs=2",
                         "--out", str(run))

@@ -172,7 +172,7 @@ def test_a_strided_stem_gives_a_128_px_frame_the_maps_of_a_64_px_one():
     def maps(size, stem_stride):
         shapes, x = [], torch.rand(1, 3, size, size)
         encoder = Encoder(0.25, image_size=size, stem_stride=stem_stride)
-        for conv, norm in zip(encoder.convs, encoder.norms):
+        for conv in encoder.convs:
             x = conv(x)
             shapes.append(tuple(x.shape[1:]))
         return shapes
