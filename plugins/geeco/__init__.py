@@ -40,10 +40,11 @@ def register_scenes(register):
 
 
 def _builder(variant: str):
-    def build(image_size: int = 64, width: float = 1.0, norm: bool = False, min_side: int = 1, stem_stride: int = 1):
+    def build(**settings):
+        """``Geeco(variant, **settings)``: image_size, width, norm, min_side, stem_stride."""
         from .model import Geeco
 
-        return Geeco(variant, image_size=image_size, width=width, norm=norm, min_side=min_side, stem_stride=stem_stride)
+        return Geeco(variant, **settings)
 
     return build
 

@@ -87,11 +87,6 @@ def strides(size: int, min_side: int = 1, stem_stride: int = 1) -> list[int]:
     return out
 
 
-def encoder(width: float = 1.0, norm: bool = False, image_size: int = 256, min_side: int = 1,
-            stem_stride: int = 1) -> Encoder:
-    return Encoder(width, norm, image_size, min_side, stem_stride)
-
-
 def feature_shape(size: int, width: float, min_side: int = 1, stem_stride: int = 1) -> tuple[int, int]:
     """(channels, side) of an encoder's output for ``size`` x ``size`` input."""
     side = size
@@ -108,9 +103,9 @@ class Geeco(nn.Module):
             raise ValueError(f"variant {variant!r} is not known; valid: {', '.join(VARIANTS)}")
         self.variant, self.image_size, self.width, self.buffer = variant, image_size, width, buffer
         enc = dict(width=width, norm=norm, image_size=image_size, min_side=min_side, stem_stride=stem_stride)
-        self.obs = encoder(**enc)  # psi_OBS
-        self.dyn = encoder(**enc) if variant == "geeco-f" else None  # psi_DYN
-        self.diff = encoder(**enc) if variant in ("geeco-f", "geeco-d") else None  # psi_DIFF
+        self.obs = Encoder(**enc)  # psi_OBS
+        self.dyn = Encoder(**enc) if variant == "geeco-f" else None  # psi_DYN
+        self.diff = Encoder(**enc) if variant in ("geeco-f", "geeco-d") else None  # psi_DIFF
         channels, side = feature_shape(image_size, width, min_side, stem_stride)
         maps = {"geeco-f": 3, "geeco-d": 2, "geeco-r": 2, "e2evmc": 1}[variant]
         self.state_size = (maps * channels + JOINTS) * side * side
