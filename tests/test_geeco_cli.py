@@ -148,7 +148,7 @@ def test_behaviour_cloning_on_demonstrations_beats_the_mean_command(tiny_pipelin
     model = Geeco("geeco-d", image_size=32, width=0.25, norm=True)
     opt = torch.optim.Adam(model.parameters(), lr=2e-3)
     loader = torch.utils.data.DataLoader(chunks, batch_size=8, shuffle=True)
-    for _ in range(30):
+    for _ in range(60):  # 30 epochs left some seeds at 0.87 of the mean's error; 60 gave 0.26-0.37 over seeds 2-5
         for batch in loader:
             batch = to_float_frames(batch)
             loss, _ = geeco_loss(model(batch["frames"], batch["joints"], batch["target"]), batch)
@@ -162,7 +162,7 @@ def test_behaviour_cloning_on_demonstrations_beats_the_mean_command(tiny_pipelin
     mean_mse = float(((batch["dee"] - batch["dee"].mean(dim=(0, 1))) ** 2).mean())
     grip_acc = float((pred["grip"].argmax(-1) == batch["grip"]).float().mean())
     majority = float(np.bincount(batch["grip"].flatten().numpy()).max() / batch["grip"].numel())
-    assert mse < 0.8 * mean_mse, (mse, mean_mse)  # seen: 0.073 vs 0.110
+    assert mse < 0.8 * mean_mse, (mse, mean_mse)  # seen: 0.027-0.039 vs 0.105
     assert grip_acc > majority + 0.02, (grip_acc, majority)  # seen: 0.999 vs 0.960 (no-op most of the time)
 
 
