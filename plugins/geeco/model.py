@@ -66,9 +66,9 @@ class Encoder(nn.Module):
         for conv, norm in zip(self.convs, self.norms):
             if x.shape[-1] <= 2 and torch.is_autocast_enabled(x.device.type):
                 with torch.autocast(x.device.type, enabled=False):
-                    x = F.relu(norm(conv(x.float())))
-            else:
-                x = F.relu(norm(conv(x)))
+                    x = F.relu_(norm(conv(x.float())))
+            else:  # ReLU in place: neither GroupNorm's nor a convolution's backward needs its output
+                x = F.relu_(norm(conv(x)))
         return x
 
 
