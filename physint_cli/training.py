@@ -9,6 +9,7 @@ from __future__ import annotations
 import contextlib
 import os
 import random
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable
@@ -182,6 +183,42 @@ def unwrap(model):
     return model.module if hasattr(model, "module") else model
 
 
+CHECKPOINT_SECONDS = 300.0
+"""Within an epoch ``fit`` also saves its ``last`` checkpoint this often, so an interrupted
+training resumes at the batch it had reached and loses at most this much work."""
+
+
+class EpochOrder:
+    """The order of one epoch's training samples: a permutation drawn from (seed, epoch) alone
+    (or a ``DistributedSampler``'s share of it), so an epoch interrupted part-way is drawn the
+    same way again on resume and continues from the sample it had reached. A torch ``Sampler``;
+    ``data`` may grow between epochs."""
+
+    def __init__(self, data, seed: int, distributed=None):
+        self.data, self.seed, self.distributed = data, int(seed), distributed
+        self.epoch, self.start = 0, 0
+
+    def set_epoch(self, epoch: int, start: int = 0) -> None:
+        """Draw ``epoch``'s order and leave out its first ``start`` samples (already trained on)."""
+        self.epoch, self.start = int(epoch), int(start)
+        if self.distributed is not None:
+            self.distributed.set_epoch(epoch)
+
+    def _order(self) -> list[int]:
+        if self.distributed is not None:
+            return list(self.distributed)
+        import torch
+
+        seed = int(np.random.SeedSequence([self.seed, self.epoch]).generate_state(1)[0])
+        return torch.randperm(len(self.data), generator=torch.Generator().manual_seed(seed)).tolist()
+
+    def __iter__(self):
+        return iter(self._order()[self.start:])
+
+    def __len__(self) -> int:
+        return max(0, (len(self.distributed) if self.distributed is not None else len(self.data)) - self.start)
+
+
 @dataclass
 class FitResult:
     epochs: int
@@ -196,7 +233,8 @@ def fit(model, train_set, val_set, *, run, epochs: int, batch_size: int, lr: flo
         make_optimizer: Callable[[Any], tuple[Any, Any]] | None = None, precision: str = "fp32",
         channels_last: bool = False, batch_transform: Callable[[dict[str, Any]], dict[str, Any]] | None = None,
         before_epoch: Callable[[int, Any], None] | None = None) -> FitResult:
-    """Supervised training with checkpoints every epoch, resume and DDP.
+    """Supervised training with checkpoints every epoch (and every ``CHECKPOINT_SECONDS`` within
+    one), resume from where it stopped, and DDP.
 
     ``loss_fn(model, batch) -> scalar loss``; ``metric_fn(model, loader) -> float`` on validation.
     ``precision`` (``fp32``, ``bf16``, ``auto``: see :func:`resolve_precision`) runs the forward
@@ -231,7 +269,7 @@ def fit(model, train_set, val_set, *, run, epochs: int, batch_size: int, lr: flo
         if optimizer not in optimizers:
             raise BadInput(f"optimizer {optimizer!r} is not known; valid: {', '.join(optimizers)}")
         opt = optimizers[optimizer](params, lr=lr, weight_decay=weight_decay)
-    start_epoch, best, history = 0, None, []
+    start_epoch, start_batch, partial, best, history = 0, 0, (0.0, 0), None, []
     last = run.checkpoint("last")
     if resume and last.exists():
         state = load_checkpoint(last, device)
@@ -240,23 +278,30 @@ def fit(model, train_set, val_set, *, run, epochs: int, batch_size: int, lr: flo
         if scheduler is not None and state.get("scheduler"):
             scheduler.load_state_dict(state["scheduler"])
         start_epoch, best, history = state["epoch"], state.get("best"), state.get("history", [])
+        start_batch, partial = state.get("batch", 0), tuple(state.get("partial", (0.0, 0)))
         torch.set_rng_state(state["torch_rng"])
-        log(f"resumed from {last} at epoch {start_epoch}")
-    sampler = DistributedSampler(train_set, shuffle=True, seed=seed) if d.enabled else None
+        log(f"resumed from {last} at epoch {start_epoch}" + (f", {start_batch} batches into epoch {start_epoch + 1}" if start_batch else ""))
+    order = EpochOrder(train_set, seed, DistributedSampler(train_set, shuffle=True, seed=seed) if d.enabled else None)
     generator = torch.Generator().manual_seed(seed)
-    loader = DataLoader(train_set, batch_size=batch_size, shuffle=sampler is None, sampler=sampler,
-                        num_workers=num_workers, generator=generator, drop_last=False)
+    loader = DataLoader(train_set, batch_size=batch_size, sampler=order, num_workers=num_workers,
+                        generator=generator, drop_last=False)
     val_loader = DataLoader(val_set, batch_size=batch_size, shuffle=False, num_workers=num_workers)
     if before_epoch is not None and d.enabled:
         raise BadInput("this training grows its data between epochs, which needs a single process (not torchrun)")
+    def state_now(**progress) -> dict[str, Any]:
+        return dict(model=unwrap(model).state_dict(), optimizer=opt.state_dict(), best=best,
+                    scheduler=scheduler.state_dict() if scheduler is not None else None, history=history,
+                    torch_rng=torch.get_rng_state(), meta=meta or {}, **progress)
+
     for epoch in range(start_epoch, epochs):
-        if sampler is not None:
-            sampler.set_epoch(epoch)
+        skip = start_batch if epoch == start_epoch else 0
+        order.set_epoch(epoch, skip * batch_size)
         if before_epoch is not None:
             before_epoch(epoch, unwrap(model))
         model.train()
-        total, count = 0.0, 0
-        for batch in loader:
+        total, count = partial if skip else (0.0, 0)
+        saved = time.monotonic()
+        for i, batch in enumerate(loader, start=skip + 1):
             if batch_transform is not None:
                 batch = batch_transform(batch)
             batch = to_device(batch, device, channels_last)
@@ -267,6 +312,9 @@ def fit(model, train_set, val_set, *, run, epochs: int, batch_size: int, lr: flo
             opt.step()
             total += float(loss.detach()) * len(next(iter(batch.values())))
             count += len(next(iter(batch.values())))
+            if d.is_main and time.monotonic() - saved >= CHECKPOINT_SECONDS:  # part of an epoch: i batches done
+                save_checkpoint(last, **state_now(epoch=epoch, batch=i, partial=(total, count)))
+                saved = time.monotonic()
         if scheduler is not None:
             scheduler.step()
         model.eval()
@@ -279,12 +327,10 @@ def fit(model, train_set, val_set, *, run, epochs: int, batch_size: int, lr: flo
             best = val
         if d.is_main:
             run.log_metrics(epoch + 1, **point)
-            state = dict(model=unwrap(model).state_dict(), optimizer=opt.state_dict(), epoch=epoch + 1, best=best,
-                         scheduler=scheduler.state_dict() if scheduler is not None else None,
-                         history=history, torch_rng=torch.get_rng_state(), meta=meta or {})
+            state = state_now(epoch=epoch + 1, batch=0)
             if improved:
                 save_checkpoint(run.checkpoint("best"), **state)
-            save_checkpoint(run.checkpoint("last"), **state)
+            save_checkpoint(last, **state)
             log(f"epoch {epoch + 1}/{epochs}: train loss {point['train_loss']:.4f}, val {val:.4f}")
         barrier(d)
     return FitResult(epochs=epochs, best_metric=float(best) if best is not None else float("nan"), history=history)

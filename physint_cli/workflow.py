@@ -21,7 +21,7 @@ from .errors import BadInput, unknown
 from .method import Context, Unit
 from .plugins import get_plugins
 from .runs import Run, home, latest_run, open_run
-from .training import resolve_device
+from .training import resolve_device, seed_everything
 
 # config sections named after the verbs that use a trained run: taken from the preset and --set,
 # never from the run's saved config
@@ -242,6 +242,7 @@ def run_train(opts: Options) -> dict[str, Any]:
     else:
         run = Run.create("train", ctx, configs.to_dict(ctx.config), opts.out)
     ctx = ctx.with_(run=run.path)
+    seed_everything(ctx.seed)  # before the method builds its model: --seed sets the initial weights too
     with _discarded_on_bad_input(run if resume_run is None and world == 1 else None):
         metrics = method.train(ctx)
     if rank == 0:

@@ -290,6 +290,55 @@ def test_ctrl_c_during_training_keeps_the_last_checkpoint_and_resumes(toy_plugin
     assert [json.loads(line)["step"] for line in (out / "metrics.jsonl").read_text().splitlines()] == [1, 2, 3, 4, 5]
 
 
+def test_training_stopped_mid_epoch_resumes_at_its_batch_and_ends_as_if_never_stopped(toy_plugins, monkeypatch,
+                                                                                      tmp_path):
+    """Within an epoch fit saves its place every CHECKPOINT_SECONDS (here after every batch): a training
+    stopped part-way through epoch 2 resumes at the batch it reached and ends with the very weights and
+    losses of one that ran through."""
+    import torch
+
+    from physint_cli import training
+
+    monkeypatch.setattr(training, "CHECKPOINT_SECONDS", 0.0)
+    args = ["train", "toy", "--preset", "tiny", "--set", "train.epochs=3", "--set", "train.batch_size=4"]  # 8 batches
+    whole, cut = tmp_path / "whole", tmp_path / "cut"
+    code, _, err = call(*args, "--out", str(whole))
+    assert code == 0, err
+    original, batches = training.to_device, []
+
+    def stop_in_the_fifth_batch_of_epoch_2(batch, *rest, **kw):
+        batches.append(1)
+        if len(batches) == 8 + 5:
+            raise KeyboardInterrupt
+        return original(batch, *rest, **kw)
+
+    monkeypatch.setattr(training, "to_device", stop_in_the_fifth_batch_of_epoch_2)
+    code, _, err = call(*args, "--out", str(cut))
+    assert code == 130 and "rerun the same command to resume" in err
+    monkeypatch.setattr(training, "to_device", original)
+    code, _, err = call("train", "toy", "--resume", "--run", str(cut), "--json")
+    assert code == 0, err
+    assert "at epoch 1, 4 batches into epoch 2" in err
+    ran, resumed = (torch.load(r / "checkpoints" / "last.pt", weights_only=False) for r in (whole, cut))
+    assert all(torch.equal(ran["model"][k], resumed["model"][k]) for k in ran["model"])
+    assert [h["train_loss"] for h in ran["history"]] == [h["train_loss"] for h in resumed["history"]]
+
+
+def test_the_seed_sets_the_initial_weights(toy_plugins, tmp_path):
+    """Trainings with one --seed start from the same weights, whatever ran before in the process;
+    another seed starts elsewhere."""
+    import torch
+
+    def first_weights(seed: int, name: str):
+        code, _, err = call("train", "toy", "--preset", "tiny", "--set", "train.epochs=1", "--seed", str(seed),
+                            "--out", str(tmp_path / name))
+        assert code == 0, err
+        return torch.load(tmp_path / name / "checkpoints" / "last.pt", weights_only=False)["model"]["weight"]
+
+    a, b, c = first_weights(0, "a"), first_weights(0, "b"), first_weights(1, "c")
+    assert torch.equal(a, b) and not torch.equal(a, c)
+
+
 def test_a_dying_worker_is_a_clear_failure_and_finished_shards_are_kept(toy_plugins, tmp_path):
     out = tmp_path / "ds"
     code, _, err = call("dataset", "toy", "--preset", "tiny", "--out", str(out), "--workers", "2",
