@@ -280,7 +280,8 @@ def fit(model, train_set, val_set, *, run, epochs: int, batch_size: int, lr: flo
         start_epoch, best, history = state["epoch"], state.get("best"), state.get("history", [])
         start_batch, partial = state.get("batch", 0), tuple(state.get("partial", (0.0, 0)))
         torch.set_rng_state(state["torch_rng"])
-        log(f"resumed from {last} at epoch {start_epoch}" + (f", {start_batch} batches into epoch {start_epoch + 1}" if start_batch else ""))
+        within = f", {start_batch} batches into epoch {start_epoch + 1}" if start_batch else ""
+        log(f"resumed from {last} at epoch {start_epoch}{within}")
     order = EpochOrder(train_set, seed, DistributedSampler(train_set, shuffle=True, seed=seed) if d.enabled else None)
     generator = torch.Generator().manual_seed(seed)
     loader = DataLoader(train_set, batch_size=batch_size, sampler=order, num_workers=num_workers,
@@ -288,6 +289,7 @@ def fit(model, train_set, val_set, *, run, epochs: int, batch_size: int, lr: flo
     val_loader = DataLoader(val_set, batch_size=batch_size, shuffle=False, num_workers=num_workers)
     if before_epoch is not None and d.enabled:
         raise BadInput("this training grows its data between epochs, which needs a single process (not torchrun)")
+
     def state_now(**progress) -> dict[str, Any]:
         return dict(model=unwrap(model).state_dict(), optimizer=opt.state_dict(), best=best,
                     scheduler=scheduler.state_dict() if scheduler is not None else None, history=history,
