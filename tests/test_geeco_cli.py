@@ -214,6 +214,7 @@ def test_bad_training_settings_exit_2(tiny_pipeline, tmp_path):
                              ("train.epochs=0", "train.epochs must be >= 1"),
                              ("train.min_side=0", "train.min_side must be >= 1"),
                              ("train.stem_stride=3", "train.stem_stride must be 1 or 2"),
+                             ("train.dee_bins=1", "train.dee_bins must be 0 (regression, the thesis) or >= 2"),
                              ("train.schedule=step", "train.schedule must be one of cosine, constant"),
                              ("train.dagger_epochs=1", "train.dagger_epochs must lie in [2, train.epochs = 2]"),
                              ("train.dagger_epochs=two", "train.dagger_epochs must be comma-separated epoch numbers"),
@@ -302,3 +303,18 @@ def test_dagger_needs_the_push_expert():
     assert parse_epochs("8, 6,10", 12, "push") == [6, 8, 10] and parse_epochs("", 12, "pickplace") == []
     with pytest.raises(BadInput, match="pick-and-place expert is a plan"):
         parse_epochs("6", 12, "pickplace")
+
+
+def test_a_controller_with_binned_commands_trains_evaluates_and_keeps_its_bins(tiny_pipeline, tmp_path):
+    from physint_plugins.geeco.train import load_controller
+
+    out, _ = tiny_pipeline
+    run = tmp_path / "bins"
+    code, _, err = call("train", "geeco", "--preset", "tiny", "--data", str(out / "dataset"), "--set", "train.dee_bins=11",
+                        "--out", str(run))
+    assert code == 0, err
+    model, _ = load_controller(run)
+    assert model.dee_bins == 11 and model.heads["dee"].out_features == 33
+    code, stdout, err = call("eval", "geeco", "--run", str(run), "--out", str(tmp_path / "eval"), "--json")
+    assert code == 0, err
+    assert json.loads(stdout)["metrics"]["episodes"] == 2

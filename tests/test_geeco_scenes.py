@@ -235,15 +235,16 @@ def test_goal_conditioned_variants_read_the_task_from_the_target_image():
     assert errors["geeco-d"] < 0.05 and errors["e2evmc"] > 0.25, errors
 
 
-@pytest.mark.parametrize("variant", ["geeco-f", "geeco-d", "geeco-r", "e2evmc"])
-def test_the_controller_step_by_step_answers_as_the_whole_window_would(variant):
+@pytest.mark.parametrize("variant,dee_bins", [("geeco-f", 0), ("geeco-d", 0), ("geeco-r", 0), ("e2evmc", 0),
+                                              ("geeco-f", 21), ("geeco-d", 21)])
+def test_the_controller_step_by_step_answers_as_the_whole_window_would(variant, dee_bins):
     """Control keeps per-frame states for D, R and E2EVMC; its answers match the network on the
     padded window (the buffer starts as K copies of the first frame)."""
     from physint_plugins.geeco.control import DEE_SCALE, Policy
     from physint_plugins.geeco.model import Geeco
 
     torch.manual_seed(0)
-    model = Geeco(variant, image_size=32, width=0.25)
+    model = Geeco(variant, image_size=32, width=0.25, dee_bins=dee_bins)
     policy = Policy(model)
     rng = np.random.default_rng(0)
     target = rng.integers(0, 255, (32, 32, 3), dtype=np.uint8)
@@ -259,3 +260,44 @@ def test_the_controller_step_by_step_answers_as_the_whole_window_would(variant):
         action = policy.act(frames[t], joints[t])
         assert np.allclose(action[:3], whole["dee"][0, t].numpy() * DEE_SCALE, atol=1e-5)
         assert action[3] == (-1, 0, 1)[int(whole["grip"][0, t].argmax())]
+
+
+def test_binned_commands_decode_their_two_hot_targets_and_pick_one_of_two_modes():
+    from physint_plugins.geeco.model import decode_bins, two_hot
+
+    values = torch.tensor([-1.0, -0.33, 0.0, 0.52, 0.97, 1.0])
+    probs = two_hot(values, 21)
+    assert torch.allclose(probs.sum(-1), torch.ones(6)) and int((probs > 0).sum(-1).max()) <= 2
+    assert torch.allclose(decode_bins(torch.log(probs + 1e-9)), values, atol=1e-4)
+    logits = torch.full((21,), -10.0)
+    logits[5], logits[15] = 2.0, 2.1  # two commands, -0.5 and +0.5: the stronger one, not their mean
+    assert abs(float(decode_bins(logits)) - 0.5) < 1e-3
+
+
+def test_where_the_demonstrations_disagree_binned_commands_follow_one_of_them_and_regression_stalls():
+    """One observation, two demonstrated commands (+-1 on y, as pushing on or going round): the
+    regressed command is their average, about 0; the binned one is one of them (loss Eq. 6.3 with
+    cross-entropy on the bins)."""
+    from physint_plugins.geeco.model import Geeco, geeco_loss
+
+    def batch(n, generator):
+        dee = torch.zeros(n, 1, 3)
+        dee[:, 0, 1] = torch.randint(0, 2, (n,), generator=generator).float() * 2 - 1
+        return {"dee": dee, "grip": torch.zeros(n, 1, dtype=torch.long), "ee": torch.zeros(n, 1, 3),
+                "obj": torch.zeros(n, 1, 3)}
+
+    answers = {}
+    for bins in (0, 21):
+        torch.manual_seed(0)
+        generator = torch.Generator().manual_seed(1)
+        model = Geeco("e2evmc", image_size=32, width=0.25, dee_bins=bins)
+        opt = torch.optim.Adam(model.parameters(), lr=2e-3)
+        frames, joints = torch.full((64, 4, 3, 32, 32), 0.3), torch.zeros(64, 4, 7)
+        for _ in range(100):
+            loss, _ = geeco_loss(model(frames, joints), batch(64, generator))
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+        with torch.no_grad():
+            answers[bins] = float(model(frames[:1], joints[:1])["dee"][0, 0, 1])
+    assert abs(answers[0]) < 0.4 and abs(answers[21]) > 0.8, answers  # seen over 4 seeds: |0.03-0.19| and 1.0

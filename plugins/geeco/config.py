@@ -43,6 +43,9 @@ class TrainConfig:
                               "whose 2x2 maps at 256 px become 1x1 at 64 px; 4 pushed worse, docs/geeco.md)")
     stem_stride: int = field_(1, "stride of the encoders' first convolution (1: Table 6.A.1; 2 halves the frame "
                                  "there, so 128 px frames cost about what 64 px frames do)")
+    dee_bins: int = field_(0, "0: regress u_dEE with MSE (the thesis); N >= 2: classify each axis over N bins across "
+                              "the expert's largest step (cross-entropy), so states with two demonstrated commands get "
+                              "one of them, not their average")
     val_episodes: int = field_(12, "closed-loop validation episodes after each epoch picking the best checkpoint "
                                     "(0: validation loss instead)")
     dagger_epochs: str = field_("", "comma-separated epochs before which the controller drives the robot from "

@@ -30,6 +30,8 @@ PUSH_HOVER = 0.075  # the hand flies to the start of a push at this height
 PUSH_CLEAR = 0.1  # after pushing, the hand rises this high before it leaves
 PUSH_DONE = 0.03  # the push ends with the cube's centre this close to the target's
 PUSH_CORRIDOR = 0.03  # a hand this far beside the line through the cube's centre keeps pushing
+PUSH_STEER = 0.2  # lateral gain: m of sideways hand motion per m the hand is beside that line, a step
+PUSH_STEER_MAX = 0.006  # m: at most this much sideways a step
 PUSH_HEIGHT = 0.017  # the hand (between the fingertips) while pushing: low on the cube, so it slides, not tips
 HOVER = 0.13  # carrying height above the table
 HAND_TOLERANCE = 0.012  # a phase ends when the hand is this close to where it was sent
@@ -205,7 +207,7 @@ class Expert:
         low = self.hand[2] < height + 0.015
         if low and -(CUBE / 2 + 0.065) < along < -CUBE / 2 + 0.012 and abs(across) < PUSH_CORRIDOR:
             speed = min(PUSH_SPEED, max(0.004, 0.5 * remaining))
-            lateral = -np.clip(0.2 * across, -0.006, 0.006)  # steer the hand back onto the line
+            lateral = -np.clip(PUSH_STEER * across, -PUSH_STEER_MAX, PUSH_STEER_MAX)  # steer the hand back onto the line
             xy = speed * d + lateral * normal
             return np.array([xy[0], xy[1], np.clip(height - at[2], -SLOW, SLOW)]), grip
         above_start = np.linalg.norm(at[:2] - start) < 0.01 and np.linalg.norm(self.hand[:2] - start) < HAND_REACH

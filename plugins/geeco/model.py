@@ -21,6 +21,13 @@ adds group normalisation after each convolution (not in the thesis; it speeds up
 
 ``forward`` takes a chunk of T >= K consecutive frames and answers for each of its T - K + 1
 windows, so in training every frame is encoded once however many windows share it.
+
+``dee_bins`` > 0 (not in the thesis) classifies each axis of u_dEE over that many bins across
+[-1, 1] (the expert's largest step) instead of regressing it: the loss is cross-entropy on
+two-hot targets (the two bins either side of the value, weighted so their mean is the value), and
+the command is the mean over the most likely bin and its neighbours. Where the demonstrations show
+two different commands for states the network cannot tell apart (push on, or rise and go round),
+the regression answers their average, a stall; the classifier answers one of them.
 """
 
 from __future__ import annotations
@@ -97,11 +104,14 @@ def feature_shape(size: int, width: float, min_side: int = 1, stem_stride: int =
 
 class Geeco(nn.Module):
     def __init__(self, variant: str = "geeco-f", image_size: int = 64, width: float = 1.0, buffer: int = BUFFER,
-                 norm: bool = False, min_side: int = 1, stem_stride: int = 1):
+                 norm: bool = False, min_side: int = 1, stem_stride: int = 1, dee_bins: int = 0):
         super().__init__()
         if variant not in VARIANTS:
             raise ValueError(f"variant {variant!r} is not known; valid: {', '.join(VARIANTS)}")
+        if dee_bins == 1 or dee_bins < 0:
+            raise ValueError(f"dee_bins must be 0 (regression) or >= 2, got {dee_bins}")
         self.variant, self.image_size, self.width, self.buffer = variant, image_size, width, buffer
+        self.dee_bins = dee_bins
         enc = dict(width=width, norm=norm, image_size=image_size, min_side=min_side, stem_stride=stem_stride)
         self.obs = Encoder(**enc)  # psi_OBS
         self.dyn = Encoder(**enc) if variant == "geeco-f" else None  # psi_DYN
@@ -111,7 +121,7 @@ class Geeco(nn.Module):
         self.state_size = (maps * channels + JOINTS) * side * side
         self.lstm = nn.LSTM(self.state_size, HIDDEN, batch_first=True)
         self.fc = nn.Linear(HIDDEN, HIDDEN)
-        self.heads = nn.ModuleDict({"dee": nn.Linear(HIDDEN, 3), "grip": nn.Linear(HIDDEN, GRIPPER_CLASSES),
+        self.heads = nn.ModuleDict({"dee": nn.Linear(HIDDEN, 3 * max(1, dee_bins)), "grip": nn.Linear(HIDDEN, GRIPPER_CLASSES),
                                     "ee": nn.Linear(HIDDEN, 3), "obj": nn.Linear(HIDDEN, 3)})
 
     @property
@@ -152,7 +162,7 @@ class Geeco(nn.Module):
         else:
             per_frame = self.frame_states(frames, joints, target)
             state = per_frame.unfold(1, k, 1).permute(0, 1, 3, 2).flatten(0, 1)  # (B*W, K, state)
-        return {name: out.view(b, w, -1) for name, out in self.decide(state).items()}
+        return {name: out.view(b, w, *out.shape[1:]) for name, out in self.decide(state).items()}
 
     def frame_states(self, frames: torch.Tensor, joints: torch.Tensor, target: torch.Tensor | None) -> torch.Tensor:
         """D, R, E2EVMC: the state s_j of each frame on its own, (B, T, state): in control each new
@@ -173,16 +183,54 @@ class Geeco(nn.Module):
         """States (N, steps, state) -> heads (N, ...): the LSTM from a zero state, FC + ReLU, four heads."""
         out, _ = self.lstm(state)
         feature = F.relu(self.fc(out[:, -1]))
-        return {name: head(feature) for name, head in self.heads.items()}
+        heads = {name: head(feature) for name, head in self.heads.items()}
+        if self.dee_bins:
+            heads["dee_logits"] = heads["dee"].view(-1, 3, self.dee_bins)
+            heads["dee"] = decode_bins(heads["dee_logits"])
+        return heads
+
+
+def bin_centres(bins: int, device=None) -> torch.Tensor:
+    """The values of ``bins`` evenly spaced bins over [-1, 1] (scaled u_dEE)."""
+    return torch.linspace(-1.0, 1.0, bins, device=device)
+
+
+def two_hot(values: torch.Tensor, bins: int) -> torch.Tensor:
+    """(...) values -> (..., bins) probabilities on the two bins either side of each value (clipped
+    to [-1, 1]), weighted so that their mean is the value."""
+    x = (values.float().clamp(-1.0, 1.0) + 1.0) * (bins - 1) / 2  # position in bin units
+    low = x.floor().clamp(max=bins - 2)
+    upper = x - low  # weight of the bin above
+    out = torch.zeros(*values.shape, bins, device=values.device)
+    out.scatter_(-1, low.long()[..., None], (1.0 - upper)[..., None])
+    out.scatter_add_(-1, low.long()[..., None] + 1, upper[..., None])
+    return out
+
+
+def decode_bins(logits: torch.Tensor) -> torch.Tensor:
+    """(..., bins) logits -> (...) values: the mean over the most likely bin and its two neighbours,
+    so a two-peaked answer gives one peak's value, not the average of both."""
+    bins = logits.shape[-1]
+    centres = bin_centres(bins, logits.device)
+    best = logits.float().argmax(-1, keepdim=True)
+    near = (torch.arange(bins, device=logits.device) - best).abs() <= 1
+    p = torch.softmax(logits.float().masked_fill(~near, float("-inf")), dim=-1)
+    return (p * centres).sum(-1)
 
 
 def geeco_loss(out: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], aux_weight: float = 1.0
                ) -> tuple[torch.Tensor, dict[str, float]]:
-    """Eq. 6.3: MSE(u_dEE) + CCE(u_GRP) + lambda (MSE(q_EE) + MSE(q_OBJ)), averaged over windows.
+    """Eq. 6.3: MSE(u_dEE) + CCE(u_GRP) + lambda (MSE(q_EE) + MSE(q_OBJ)), averaged over windows
+(with binned u_dEE, ``dee_bins``: its cross-entropy in place of the MSE).
 
     ``batch`` holds the scaled targets ``dee``, ``ee``, ``obj`` (B, W, 3) and ``grip`` (B, W) class ids.
     """
-    dee = F.mse_loss(out["dee"].float(), batch["dee"])
+    if "dee_logits" in out:  # binned u_dEE: cross-entropy on two-hot targets, per axis
+        logits = out["dee_logits"].float().flatten(0, -3)  # (windows, 3, bins)
+        target = two_hot(batch["dee"].reshape(-1, 3), logits.shape[-1])
+        dee = -(target * F.log_softmax(logits, dim=-1)).sum(-1).mean()
+    else:
+        dee = F.mse_loss(out["dee"].float(), batch["dee"])
     grip = F.cross_entropy(out["grip"].float().flatten(0, 1), batch["grip"].flatten().long())
     aux = F.mse_loss(out["ee"].float(), batch["ee"]) + F.mse_loss(out["obj"].float(), batch["obj"])
     total = dee + grip + aux_weight * aux

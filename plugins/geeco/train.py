@@ -28,12 +28,12 @@ FIELDS = ["rgb", "joints", "ee", "obj", "dee", "grip", "layout", "task", "seed"]
 
 
 def build_model(name: str, image_size: int, width: float, norm: bool = False, min_side: int = 1,
-                stem_stride: int = 1):
+                stem_stride: int = 1, dee_bins: int = 0):
     """A registered GEECO model (``register_models``)."""
     from physint_cli.training import registered_model
 
     kwargs = {"image_size": int(image_size), "width": float(width), "norm": bool(norm), "min_side": int(min_side),
-              "stem_stride": int(stem_stride)}
+              "stem_stride": int(stem_stride), "dee_bins": int(dee_bins)}
     return registered_model("geeco", name).build(**kwargs), kwargs
 
 
@@ -172,6 +172,8 @@ def train(ctx: Context) -> dict[str, Any]:
         raise BadInput(f"train.min_side must be >= 1, got {cfg.min_side}")
     if cfg.stem_stride not in (1, 2):
         raise BadInput(f"train.stem_stride must be 1 or 2, got {cfg.stem_stride}")
+    if cfg.dee_bins == 1 or cfg.dee_bins < 0:
+        raise BadInput(f"train.dee_bins must be 0 (regression, the thesis) or >= 2, got {cfg.dee_bins}")
     if cfg.width <= 0 or cfg.lr <= 0 or cfg.aux_weight < 0 or cfg.val_episodes < 0:
         raise BadInput("train.width and train.lr must be > 0, train.aux_weight and train.val_episodes >= 0")
     rounds = parse_epochs(cfg.dagger_epochs, cfg.epochs, skill)
@@ -179,7 +181,8 @@ def train(ctx: Context) -> dict[str, Any]:
         raise BadInput(f"train.dagger_episodes must be >= 1, got {cfg.dagger_episodes}")
     if not 0 <= cfg.dagger_beta < 1:
         raise BadInput(f"train.dagger_beta must be in [0, 1), got {cfg.dagger_beta}")
-    model, kwargs = build_model(name, data_cfg["resolution"], cfg.width, cfg.norm, cfg.min_side, cfg.stem_stride)
+    model, kwargs = build_model(name, data_cfg["resolution"], cfg.width, cfg.norm, cfg.min_side, cfg.stem_stride,
+                                cfg.dee_bins)
     train_demos, val_demos = load_split(ctx.data, "train"), load_split(ctx.data, "val")
     train_set, val_set = Chunks(train_demos, cfg.chunk), Chunks(val_demos, cfg.chunk)
     aggregation = Aggregation(ctx, Run(ctx.run).path, train_set, train_demos, rounds, cfg.dagger_episodes,
