@@ -310,8 +310,8 @@ def test_a_controller_with_binned_commands_trains_evaluates_and_keeps_its_bins(t
 
     out, _ = tiny_pipeline
     run = tmp_path / "bins"
-    code, _, err = call("train", "geeco", "--preset", "tiny", "--data", str(out / "dataset"), "--set", "train.dee_bins=11",
-                        "--out", str(run))
+    code, _, err = call("train", "geeco", "--preset", "tiny", "--data", str(out / "dataset"),
+                        "--set", "train.dee_bins=11", "--out", str(run))
     assert code == 0, err
     model, _ = load_controller(run)
     assert model.dee_bins == 11 and model.heads["dee"].out_features == 33

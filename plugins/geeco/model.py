@@ -121,7 +121,8 @@ class Geeco(nn.Module):
         self.state_size = (maps * channels + JOINTS) * side * side
         self.lstm = nn.LSTM(self.state_size, HIDDEN, batch_first=True)
         self.fc = nn.Linear(HIDDEN, HIDDEN)
-        self.heads = nn.ModuleDict({"dee": nn.Linear(HIDDEN, 3 * max(1, dee_bins)), "grip": nn.Linear(HIDDEN, GRIPPER_CLASSES),
+        self.heads = nn.ModuleDict({"dee": nn.Linear(HIDDEN, 3 * max(1, dee_bins)),  # values or per-axis bin logits
+                                    "grip": nn.Linear(HIDDEN, GRIPPER_CLASSES),
                                     "ee": nn.Linear(HIDDEN, 3), "obj": nn.Linear(HIDDEN, 3)})
 
     @property
@@ -180,7 +181,8 @@ class Geeco(nn.Module):
         return self._state(maps, joints.flatten(0, 1)).view(b, t, -1)
 
     def decide(self, state: torch.Tensor) -> dict[str, torch.Tensor]:
-        """States (N, steps, state) -> heads (N, ...): the LSTM from a zero state, FC + ReLU, four heads."""
+        """States (N, steps, state) -> heads (N, ...): the LSTM from a zero state, FC + ReLU, four heads
+        (with ``dee_bins``, also ``dee_logits`` (N, 3, bins), and ``dee`` read from them)."""
         out, _ = self.lstm(state)
         feature = F.relu(self.fc(out[:, -1]))
         heads = {name: head(feature) for name, head in self.heads.items()}
@@ -220,8 +222,8 @@ def decode_bins(logits: torch.Tensor) -> torch.Tensor:
 
 def geeco_loss(out: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], aux_weight: float = 1.0
                ) -> tuple[torch.Tensor, dict[str, float]]:
-    """Eq. 6.3: MSE(u_dEE) + CCE(u_GRP) + lambda (MSE(q_EE) + MSE(q_OBJ)), averaged over windows
-(with binned u_dEE, ``dee_bins``: its cross-entropy in place of the MSE).
+    """Eq. 6.3: MSE(u_dEE) + CCE(u_GRP) + lambda (MSE(q_EE) + MSE(q_OBJ)), averaged over windows;
+    with binned u_dEE (``dee_bins``) its cross-entropy takes the MSE's place.
 
     ``batch`` holds the scaled targets ``dee``, ``ee``, ``obj`` (B, W, 3) and ``grip`` (B, W) class ids.
     """
