@@ -215,6 +215,8 @@ def test_bad_training_settings_exit_2(tiny_pipeline, tmp_path):
                              ("train.min_side=0", "train.min_side must be >= 1"),
                              ("train.stem_stride=3", "train.stem_stride must be 1 or 2"),
                              ("train.dee_bins=1", "train.dee_bins must be 0 (regression, the thesis) or >= 2"),
+                             ("train.dee_modes=-2", "train.dee_modes must be 0 (off) or >= 2"),
+                             ("train.readout=pool", "train.readout must be one of flatten, keypoints"),
                              ("train.schedule=step", "train.schedule must be one of cosine, constant"),
                              ("train.dagger_epochs=1", "train.dagger_epochs must lie in [2, train.epochs = 2]"),
                              ("train.dagger_epochs=two", "train.dagger_epochs must be comma-separated epoch numbers"),
@@ -222,6 +224,9 @@ def test_bad_training_settings_exit_2(tiny_pipeline, tmp_path):
         code, _, err = call("train", "geeco", "--preset", "tiny", "--data", str(out / "dataset"), "--set", setting,
                             "--out", str(tmp_path / "r"))
         assert code == 2 and message in err, (setting, err)
+    code, _, err = call("train", "geeco", "--preset", "tiny", "--data", str(out / "dataset"), "--set",
+                        "train.dee_bins=5", "--set", "train.dee_modes=5", "--out", str(tmp_path / "r"))
+    assert code == 2 and "set one of them" in err, err
 
 
 class _ExpertWithDetour:
@@ -305,16 +310,24 @@ def test_dagger_needs_the_push_expert():
         parse_epochs("6", 12, "pickplace")
 
 
-def test_a_controller_with_binned_commands_trains_evaluates_and_keeps_its_bins(tiny_pipeline, tmp_path):
-    from physint_plugins.geeco.train import load_controller
+@pytest.mark.parametrize("setting", ["train.dee_bins=11", "train.dee_modes=6"])
+def test_a_controller_with_classified_commands_trains_evaluates_and_keeps_its_head(tiny_pipeline, tmp_path, setting):
+    from physint_plugins.geeco.control import DEE_SCALE
+    from physint_plugins.geeco.model import command_modes
+    from physint_plugins.geeco.train import load_controller, load_split
 
     out, _ = tiny_pipeline
-    run = tmp_path / "bins"
+    run = tmp_path / "classified"
     code, _, err = call("train", "geeco", "--preset", "tiny", "--data", str(out / "dataset"),
-                        "--set", "train.dee_bins=11", "--out", str(run))
+                        "--set", setting, "--out", str(run))
     assert code == 0, err
     model, _ = load_controller(run)
-    assert model.dee_bins == 11 and model.heads["dee"].out_features == 33
+    if setting == "train.dee_bins=11":
+        assert model.dee_bins == 11 and model.heads["dee"].out_features == 33
+    else:  # the centres are the training commands' k-means, saved with the weights
+        assert model.dee_modes == 6 and model.heads["dee"].out_features == 24
+        commands = load_split(out / "dataset", "train")["dee"] / DEE_SCALE
+        assert np.allclose(model.dee_centres.numpy(), command_modes(commands, 6, seed=0), atol=1e-6)
     code, stdout, err = call("eval", "geeco", "--run", str(run), "--out", str(tmp_path / "eval"), "--json")
     assert code == 0, err
     assert json.loads(stdout)["metrics"]["episodes"] == 2

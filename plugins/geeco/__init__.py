@@ -41,7 +41,8 @@ def register_scenes(register):
 
 def _builder(variant: str):
     def build(**settings):
-        """``Geeco(variant, **settings)``: image_size, width, norm, min_side, stem_stride, dee_bins."""
+        """``Geeco(variant, **settings)``: image_size, width, norm, min_side, stem_stride, dee_bins, dee_modes,
+        readout."""
         from .model import Geeco
 
         return Geeco(variant, **settings)

@@ -46,6 +46,10 @@ class TrainConfig:
     dee_bins: int = field_(0, "0: regress u_dEE with MSE (the thesis); N >= 2: classify each axis over N bins across "
                               "the expert's largest step (cross-entropy), so states with two demonstrated commands get "
                               "one of them, not their average")
+    dee_modes: int = field_(0, "0: off; K >= 2: classify the whole u_dEE over K k-means centres of the demonstrated "
+                               "commands, each with a regressed offset (not with dee_bins)")
+    readout: str = field_("flatten", "how the encoders' maps reach the LSTM: flatten (Table 6.A.1) or keypoints "
+                                     "(a spatial softmax per channel: its expected image position; use with min_side)")
     val_episodes: int = field_(12, "closed-loop validation episodes after each epoch picking the best checkpoint "
                                     "(0: validation loss instead)")
     dagger_epochs: str = field_("", "comma-separated epochs before which the controller drives the robot from "

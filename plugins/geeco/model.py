@@ -19,6 +19,12 @@ then 2, ReLU), weights not shared; ``width`` scales the filters for the CPU pres
 adds group normalisation after each convolution (not in the thesis; it speeds up learning) and
 ``min_side`` stops the halving at that map size (small frames keep a spatial map; see ``strides``).
 
+``readout="keypoints"`` (not in the thesis) replaces the flattened maps by a spatial softmax per
+channel: each channel becomes the expected image position (x, y) of its activation (Levine et al.,
+JMLR 2016, the common readout of visuomotor policies), so where things are comes out as numbers
+instead of being squeezed into channels by halving the maps down to 1x1; use it with ``min_side``
+so that the maps keep a grid to take positions on.
+
 ``forward`` takes a chunk of T >= K consecutive frames and answers for each of its T - K + 1
 windows, so in training every frame is encoded once however many windows share it.
 
@@ -28,6 +34,14 @@ two-hot targets (the two bins either side of the value, weighted so their mean i
 the command is the mean over the most likely bin and its neighbours. Where the demonstrations show
 two different commands for states the network cannot tell apart (push on, or rise and go round),
 the regression answers their average, a stall; the classifier answers one of them.
+
+``dee_modes`` > 0 (not in the thesis) classifies the whole 3-D command instead, over that many
+modes: k-means centres of the training demonstrations' commands (``command_modes``, kept in the
+checkpoint as ``dee_centres``), each with a regressed offset from its centre (as behaviour
+transformers do). The loss is cross-entropy on the nearest centre plus the MSE of that centre's
+offset; the command is the most likely centre plus its offset. Per-axis bins choose each axis on
+its own, so where the demonstrations go several ways every axis can fall to its middle bin, zero;
+one class for the whole command cannot.
 """
 
 from __future__ import annotations
@@ -44,6 +58,7 @@ HIDDEN = 128
 JOINTS = 7
 GRIPPER_CLASSES = 3  # open, no-op, close
 VARIANTS = ("geeco-f", "geeco-d", "geeco-r", "e2evmc")
+READOUTS = ("flatten", "keypoints")
 
 
 class Encoder(nn.Module):
@@ -104,26 +119,43 @@ def feature_shape(size: int, width: float, min_side: int = 1, stem_stride: int =
 
 class Geeco(nn.Module):
     def __init__(self, variant: str = "geeco-f", image_size: int = 64, width: float = 1.0, buffer: int = BUFFER,
-                 norm: bool = False, min_side: int = 1, stem_stride: int = 1, dee_bins: int = 0):
+                 norm: bool = False, min_side: int = 1, stem_stride: int = 1, dee_bins: int = 0,
+                 dee_modes: int = 0, readout: str = "flatten"):
         super().__init__()
         if variant not in VARIANTS:
             raise ValueError(f"variant {variant!r} is not known; valid: {', '.join(VARIANTS)}")
         if dee_bins == 1 or dee_bins < 0:
             raise ValueError(f"dee_bins must be 0 (regression) or >= 2, got {dee_bins}")
+        if dee_modes == 1 or dee_modes < 0 or (dee_modes and dee_bins):
+            raise ValueError(f"dee_modes must be 0 (off) or >= 2, and not with dee_bins; got {dee_modes}")
+        if readout not in READOUTS:
+            raise ValueError(f"readout {readout!r} is not known; valid: {', '.join(READOUTS)}")
         self.variant, self.image_size, self.width, self.buffer = variant, image_size, width, buffer
-        self.dee_bins = dee_bins
+        self.readout = readout
+        self.dee_bins, self.dee_modes = dee_bins, dee_modes
+        if dee_modes:  # the k-means centres of the demonstrated commands (set_modes), saved with the weights
+            self.register_buffer("dee_centres", torch.zeros(dee_modes, 3))
         enc = dict(width=width, norm=norm, image_size=image_size, min_side=min_side, stem_stride=stem_stride)
         self.obs = Encoder(**enc)  # psi_OBS
         self.dyn = Encoder(**enc) if variant == "geeco-f" else None  # psi_DYN
         self.diff = Encoder(**enc) if variant in ("geeco-f", "geeco-d") else None  # psi_DIFF
         channels, side = feature_shape(image_size, width, min_side, stem_stride)
         maps = {"geeco-f": 3, "geeco-d": 2, "geeco-r": 2, "e2evmc": 1}[variant]
-        self.state_size = (maps * channels + JOINTS) * side * side
+        if readout == "keypoints":  # (x, y) per channel of each map, and the joint angles once
+            self.state_size = maps * channels * 2 + JOINTS
+            self.keypoint_temperature = nn.Parameter(torch.zeros(1))  # log temperature of the softmax, learned
+        else:
+            self.state_size = (maps * channels + JOINTS) * side * side
         self.lstm = nn.LSTM(self.state_size, HIDDEN, batch_first=True)
         self.fc = nn.Linear(HIDDEN, HIDDEN)
-        self.heads = nn.ModuleDict({"dee": nn.Linear(HIDDEN, 3 * max(1, dee_bins)),  # values or per-axis bin logits
+        dee_outputs = 4 * dee_modes if dee_modes else 3 * max(1, dee_bins)  # mode logits + offsets, bin logits, values
+        self.heads = nn.ModuleDict({"dee": nn.Linear(HIDDEN, dee_outputs),
                                     "grip": nn.Linear(HIDDEN, GRIPPER_CLASSES),
                                     "ee": nn.Linear(HIDDEN, 3), "obj": nn.Linear(HIDDEN, 3)})
+
+    def set_modes(self, commands, seed: int = 0) -> None:
+        """Fit the ``dee_modes`` centres to the scaled commands (..., 3) of the training demonstrations."""
+        self.dee_centres.copy_(torch.as_tensor(command_modes(commands, self.dee_modes, seed), dtype=torch.float32))
 
     @property
     def conditioned(self) -> bool:
@@ -134,7 +166,11 @@ class Geeco(nn.Module):
         return net(images.contiguous(memory_format=torch.channels_last))
 
     def _state(self, maps: list[torch.Tensor], joints: torch.Tensor) -> torch.Tensor:
-        """Concatenate feature maps (N, C, s, s) with the tiled joint angles (N, 7); flatten."""
+        """Concatenate feature maps (N, C, s, s) with the tiled joint angles (N, 7); flatten (with
+        ``readout="keypoints"``: each map's keypoints, then the joint angles)."""
+        if self.readout == "keypoints":
+            points = [spatial_softmax(m, self.keypoint_temperature.exp()) for m in maps]
+            return torch.cat([*points, joints.to(points[0].dtype)], dim=1)
         side = maps[0].shape[-1]
         tiled = joints[:, :, None, None].expand(-1, -1, side, side).to(maps[0].dtype)
         return torch.cat([*maps, tiled], dim=1).flatten(1)
@@ -182,14 +218,51 @@ class Geeco(nn.Module):
 
     def decide(self, state: torch.Tensor) -> dict[str, torch.Tensor]:
         """States (N, steps, state) -> heads (N, ...): the LSTM from a zero state, FC + ReLU, four heads
-        (with ``dee_bins``, also ``dee_logits`` (N, 3, bins), and ``dee`` read from them)."""
+        (with ``dee_bins``, also ``dee_logits`` (N, 3, bins); with ``dee_modes``, ``mode_logits`` (N, modes)
+        and ``mode_offsets`` (N, modes, 3); ``dee`` is read from them)."""
         out, _ = self.lstm(state)
         feature = F.relu(self.fc(out[:, -1]))
         heads = {name: head(feature) for name, head in self.heads.items()}
         if self.dee_bins:
             heads["dee_logits"] = heads["dee"].view(-1, 3, self.dee_bins)
             heads["dee"] = decode_bins(heads["dee_logits"])
+        elif self.dee_modes:
+            k = self.dee_modes
+            heads["mode_logits"] = heads["dee"][:, :k]
+            heads["mode_offsets"] = heads["dee"][:, k:].view(-1, k, 3)
+            best = heads["mode_logits"].float().argmax(-1)
+            rows = torch.arange(len(best), device=best.device)
+            heads["dee"] = self.dee_centres[best] + heads["mode_offsets"][rows, best].float()  # centre + its offset
         return heads
+
+
+def command_modes(commands, modes: int, seed: int = 0) -> "np.ndarray":
+    """k-means (k-means++ start, seeded) over commands (N, 3): the (modes, 3) centres, fewer
+    distinct commands than modes repeat some."""
+    import numpy as np
+    from scipy.cluster.vq import kmeans2
+
+    x = np.asarray(commands, dtype=np.float64).reshape(-1, 3)
+    if len(np.unique(x, axis=0)) < modes:  # too few to cluster: every distinct command is a centre
+        distinct = np.unique(x, axis=0)
+        return distinct[np.arange(modes) % len(distinct)].astype(np.float32)
+    centres, _ = kmeans2(x, modes, minit="++", seed=np.random.default_rng(seed))
+    return centres.astype(np.float32)
+
+
+def nearest_mode(values: torch.Tensor, centres: torch.Tensor) -> torch.Tensor:
+    """(N, 3) commands -> (N,) index of the nearest centre."""
+    return torch.cdist(values.float(), centres.float()).argmin(-1)
+
+
+def spatial_softmax(maps: torch.Tensor, temperature: torch.Tensor) -> torch.Tensor:
+    """(N, C, s, s) -> (N, 2C): per channel, the expected (x, y) in [-1, 1] under a softmax of its
+    activations over the map (Levine et al. 2016)."""
+    n, c, h, w = maps.shape
+    p = torch.softmax(maps.float().flatten(2) / temperature, dim=-1).view(n, c, h, w)
+    ys = torch.linspace(-1.0, 1.0, h, device=maps.device)
+    xs = torch.linspace(-1.0, 1.0, w, device=maps.device)
+    return torch.cat([(p.sum(2) * xs).sum(-1), (p.sum(3) * ys).sum(-1)], dim=1)
 
 
 def bin_centres(bins: int, device=None) -> torch.Tensor:
@@ -220,10 +293,12 @@ def decode_bins(logits: torch.Tensor) -> torch.Tensor:
     return (p * centres).sum(-1)
 
 
-def geeco_loss(out: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], aux_weight: float = 1.0
-               ) -> tuple[torch.Tensor, dict[str, float]]:
+def geeco_loss(out: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], aux_weight: float = 1.0,
+               centres: torch.Tensor | None = None) -> tuple[torch.Tensor, dict[str, float]]:
     """Eq. 6.3: MSE(u_dEE) + CCE(u_GRP) + lambda (MSE(q_EE) + MSE(q_OBJ)), averaged over windows;
-    with binned u_dEE (``dee_bins``) its cross-entropy takes the MSE's place.
+    with binned u_dEE (``dee_bins``) its cross-entropy takes the MSE's place; with command modes
+    (``dee_modes``) the cross-entropy on the nearest of the model's ``centres`` plus the MSE of that
+    centre's offset.
 
     ``batch`` holds the scaled targets ``dee``, ``ee``, ``obj`` (B, W, 3) and ``grip`` (B, W) class ids.
     """
@@ -231,6 +306,12 @@ def geeco_loss(out: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], aux
         logits = out["dee_logits"].float().flatten(0, -3)  # (windows, 3, bins)
         target = two_hot(batch["dee"].reshape(-1, 3), logits.shape[-1])
         dee = -(target * F.log_softmax(logits, dim=-1)).sum(-1).mean()
+    elif "mode_logits" in out:  # command modes: which centre, then the offset from it
+        logits, offsets = out["mode_logits"].float().flatten(0, -2), out["mode_offsets"].float().flatten(0, -3)
+        target = batch["dee"].reshape(-1, 3).float()
+        mode = nearest_mode(target, centres)
+        rows = torch.arange(len(mode), device=mode.device)
+        dee = F.cross_entropy(logits, mode) + F.mse_loss(offsets[rows, mode], target - centres[mode])
     else:
         dee = F.mse_loss(out["dee"].float(), batch["dee"])
     grip = F.cross_entropy(out["grip"].float().flatten(0, 1), batch["grip"].flatten().long())

@@ -21,19 +21,20 @@ from physint_cli.method import Context
 from . import scenes as S
 from .control import DEE_SCALE, scale_positions
 from .dagger import Aggregation, parse_epochs
-from .model import BUFFER
+from .model import BUFFER, READOUTS
 
 SCHEDULES = ("cosine", "constant")
 FIELDS = ["rgb", "joints", "ee", "obj", "dee", "grip", "layout", "task", "seed"]
 
 
 def build_model(name: str, image_size: int, width: float, norm: bool = False, min_side: int = 1,
-                stem_stride: int = 1, dee_bins: int = 0):
+                stem_stride: int = 1, dee_bins: int = 0, dee_modes: int = 0, readout: str = "flatten"):
     """A registered GEECO model (``register_models``)."""
     from physint_cli.training import registered_model
 
     kwargs = {"image_size": int(image_size), "width": float(width), "norm": bool(norm), "min_side": int(min_side),
-              "stem_stride": int(stem_stride), "dee_bins": int(dee_bins)}
+              "stem_stride": int(stem_stride), "dee_bins": int(dee_bins), "dee_modes": int(dee_modes),
+              "readout": str(readout)}
     return registered_model("geeco", name).build(**kwargs), kwargs
 
 
@@ -143,7 +144,8 @@ class ValidationLoss:
         with torch.no_grad():
             for batch in loader:
                 batch = to_float_frames(batch)
-                loss, _ = geeco_loss(model(batch["frames"], batch["joints"], batch["target"]), batch, self.aux_weight)
+                loss, _ = geeco_loss(model(batch["frames"], batch["joints"], batch["target"]), batch, self.aux_weight,
+                                     getattr(model, "dee_centres", None))
                 total += float(loss) * len(batch["frames"])
                 n += len(batch["frames"])
         return -total / max(n, 1)
@@ -174,6 +176,12 @@ def train(ctx: Context) -> dict[str, Any]:
         raise BadInput(f"train.stem_stride must be 1 or 2, got {cfg.stem_stride}")
     if cfg.dee_bins == 1 or cfg.dee_bins < 0:
         raise BadInput(f"train.dee_bins must be 0 (regression, the thesis) or >= 2, got {cfg.dee_bins}")
+    if cfg.dee_modes == 1 or cfg.dee_modes < 0:
+        raise BadInput(f"train.dee_modes must be 0 (off) or >= 2, got {cfg.dee_modes}")
+    if cfg.readout not in READOUTS:
+        raise BadInput(f"train.readout must be one of {', '.join(READOUTS)}, got {cfg.readout!r}")
+    if cfg.dee_modes and cfg.dee_bins:
+        raise BadInput("train.dee_bins and train.dee_modes are two ways to read u_dEE: set one of them")
     if cfg.width <= 0 or cfg.lr <= 0 or cfg.aux_weight < 0 or cfg.val_episodes < 0:
         raise BadInput("train.width and train.lr must be > 0, train.aux_weight and train.val_episodes >= 0")
     rounds = parse_epochs(cfg.dagger_epochs, cfg.epochs, skill)
@@ -182,8 +190,10 @@ def train(ctx: Context) -> dict[str, Any]:
     if not 0 <= cfg.dagger_beta < 1:
         raise BadInput(f"train.dagger_beta must be in [0, 1), got {cfg.dagger_beta}")
     model, kwargs = build_model(name, data_cfg["resolution"], cfg.width, cfg.norm, cfg.min_side, cfg.stem_stride,
-                                cfg.dee_bins)
+                                cfg.dee_bins, cfg.dee_modes, cfg.readout)
     train_demos, val_demos = load_split(ctx.data, "train"), load_split(ctx.data, "val")
+    if cfg.dee_modes:
+        model.set_modes(train_demos["dee"] / DEE_SCALE, seed=ctx.seed)
     train_set, val_set = Chunks(train_demos, cfg.chunk), Chunks(val_demos, cfg.chunk)
     aggregation = Aggregation(ctx, Run(ctx.run).path, train_set, train_demos, rounds, cfg.dagger_episodes,
                               data_cfg["horizon"], cfg.dagger_beta, ctx.log) if rounds else None
@@ -191,7 +201,8 @@ def train(ctx: Context) -> dict[str, Any]:
             f"({len(train_set)} chunks of {cfg.chunk} windows), validating on {len(val_demos['rgb'])}")
 
     def loss_fn(net, batch):
-        loss, _ = geeco_loss(net(batch["frames"], batch["joints"], batch["target"]), batch, cfg.aux_weight)  # Eq. 6.3
+        out = net(batch["frames"], batch["joints"], batch["target"])
+        loss, _ = geeco_loss(out, batch, cfg.aux_weight, getattr(model, "dee_centres", None))  # Eq. 6.3
         return loss
 
     if cfg.val_episodes > 0:
