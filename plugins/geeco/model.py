@@ -243,8 +243,8 @@ def command_modes(commands, modes: int, seed: int = 0) -> "np.ndarray":
     from scipy.cluster.vq import kmeans2
 
     x = np.asarray(commands, dtype=np.float64).reshape(-1, 3)
-    if len(np.unique(x, axis=0)) < modes:  # too few to cluster: every distinct command is a centre
-        distinct = np.unique(x, axis=0)
+    distinct = np.unique(x, axis=0)
+    if len(distinct) < modes:  # too few to cluster: every distinct command is a centre
         return distinct[np.arange(modes) % len(distinct)].astype(np.float32)
     centres, _ = kmeans2(x, modes, minit="++", seed=np.random.default_rng(seed))
     return centres.astype(np.float32)
