@@ -217,6 +217,7 @@ def test_bad_training_settings_exit_2(tiny_pipeline, tmp_path):
                              ("train.dee_bins=1", "train.dee_bins must be 0 (regression, the thesis) or >= 2"),
                              ("train.dee_modes=-2", "train.dee_modes must be 0 (off) or >= 2"),
                              ("train.readout=pool", "train.readout must be one of flatten, keypoints"),
+                             ("train.command=plan", "train.command must be one of network, positions"),
                              ("train.schedule=step", "train.schedule must be one of cosine, constant"),
                              ("train.dagger_epochs=1", "train.dagger_epochs must lie in [2, train.epochs = 2]"),
                              ("train.dagger_epochs=two", "train.dagger_epochs must be comma-separated epoch numbers"),
@@ -227,6 +228,10 @@ def test_bad_training_settings_exit_2(tiny_pipeline, tmp_path):
     code, _, err = call("train", "geeco", "--preset", "tiny", "--data", str(out / "dataset"), "--set",
                         "train.dee_bins=5", "--set", "train.dee_modes=5", "--out", str(tmp_path / "r"))
     assert code == 2 and "set one of them" in err, err
+    for setting, message in (("train.dagger_epochs=2", "use one of the two"), ("train.dee_bins=5", "not with train.dee_bins")):
+        code, _, err = call("train", "geeco", "--preset", "tiny", "--data", str(out / "dataset"), "--set",
+                            "train.command=positions", "--set", setting, "--out", str(tmp_path / "r"))
+        assert code == 2 and message in err, (setting, err)
 
 
 class _ExpertWithDetour:
@@ -241,7 +246,7 @@ class _ExpertWithDetour:
     def reset(self, target):
         pass
 
-    def act(self, rgb, joints):
+    def act(self, rgb, joints, hand=None):
         action = self.expert.act(self.sim)
         self.commands.append(action.copy())
         if self.t < self.detour:
@@ -271,7 +276,7 @@ def test_dagger_labels_the_states_a_controller_reaches_with_the_experts_commands
     assert not np.allclose(r["dee"][:8], commands[:8, :3] + [0, 0.01, 0])  # the detour is not what it labels
     assert (r["target"] == demos["rgb"][0, -1]).all() and r["rgb"].shape == (100, 32, 32, 3) and r["on_target"]
     # a controller that never moves, overruled by the expert at a step's chance of beta
-    still = type("Still", (), {"reset": lambda self, target: None, "act": lambda self, rgb, joints: np.zeros(4)})()
+    still = type("Still", (), {"reset": lambda self, target: None, "act": lambda self, rgb, joints, hand: np.zeros(4)})()
     with pb.make("mujoco", S.build_scene(ep, 32)) as sim:
         assert not rollout(sim, ep, still, demos["rgb"][0, -1], 100)["on_target"]
         assert rollout(sim, ep, still, demos["rgb"][0, -1], 100, beta=0.95, rng=np.random.default_rng(0))["on_target"]
@@ -331,3 +336,62 @@ def test_a_controller_with_classified_commands_trains_evaluates_and_keeps_its_he
     code, stdout, err = call("eval", "geeco", "--run", str(run), "--out", str(tmp_path / "eval"), "--json")
     assert code == 0, err
     assert json.loads(stdout)["metrics"]["episodes"] == 2
+
+
+def test_a_controller_commanded_from_positions_trains_evaluates_and_keeps_its_heads(tiny_pipeline, tmp_path):
+    from physint_plugins.geeco.train import load_controller
+
+    out, _ = tiny_pipeline
+    run = tmp_path / "positions"
+    code, _, err = call("train", "geeco", "--preset", "tiny", "--data", str(out / "dataset"),
+                        "--set", "train.command=positions", "--out", str(run))
+    assert code == 0, err
+    model, meta = load_controller(run)
+    assert model.command == "positions" and meta["kwargs"]["command"] == "positions"
+    assert model.heads["goal"].out_features == 2 and model.command_head[0].in_features == 4 * 6 + 2
+    code, stdout, err = call("eval", "geeco", "--run", str(run), "--out", str(tmp_path / "eval"), "--json")
+    assert code == 0, err
+    assert json.loads(stdout)["metrics"]["episodes"] == 2
+    # the command head with the simulator's positions instead of the network's estimates
+    code, stdout, err = call("eval", "geeco", "--run", str(run), "--set", "eval.positions=true",
+                             "--out", str(tmp_path / "eval-true"), "--json")
+    assert code == 0, err
+    assert json.loads(stdout)["metrics"]["positions"] == "true"
+    for run_dir, setting, message in ((run, "eval.positions=guessed", "eval.positions must be one of seen, true"),
+                                      (out / "train", "eval.positions=true", "not trained with train.command=positions")):
+        code, _, err = call("eval", "geeco", "--run", str(run_dir), "--set", setting, "--out", str(tmp_path / "bad"))
+        assert code == 2 and message in err, (setting, err)
+
+
+def test_the_command_head_learns_the_experts_commands_from_true_positions(tiny_pipeline):
+    """Trained on the tiny demonstrations' positions alone (hand, cube over the buffer, pad), the
+    command head of ``command="positions"`` answers the expert's commands on those windows far better
+    than their mean does (8 demonstrations are too few to generalise from; docs/geeco.md has the
+    held-out figures)."""
+    from physint_cli.training import seed_everything
+    from physint_plugins.geeco.model import Geeco
+    from physint_plugins.geeco.train import Chunks, episodes_of, load_split
+
+    out, _ = tiny_pipeline
+
+    def windows(split):
+        demos = load_split(out / "dataset", split)
+        demos["goal"] = np.array([ep.xy(ep.target) for ep in episodes_of(demos, "goal2cube2", "push")], np.float32)
+        batch = torch.utils.data.default_collate(list(Chunks(demos, 100)))
+        k = 4
+        hand, obj = (batch[key].unfold(1, k, 1).transpose(-1, -2) for key in ("hand_steps", "obj_steps"))
+        return hand, obj, batch["goal"][:, None].expand(-1, hand.shape[1], -1), batch["dee"]
+
+    seed_everything(0)
+    model = Geeco("e2evmc", image_size=32, width=0.25, command="positions")
+    opt = torch.optim.Adam(model.command_head.parameters(), lr=1e-3)
+    hand, obj, goal, dee = windows("train")
+    for _ in range(400):
+        loss = ((model.command_from_positions(hand, obj, goal) - dee) ** 2).mean()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    with torch.no_grad():
+        mse = float(((model.command_from_positions(hand, obj, goal) - dee) ** 2).mean())
+    mean_mse = float(((dee - dee.mean(dim=(0, 1))) ** 2).mean())
+    assert mse < 0.5 * mean_mse, (mse, mean_mse)

@@ -267,6 +267,42 @@ def test_the_controller_step_by_step_answers_as_the_whole_window_would(variant, 
         assert action[3] == (-1, 0, 1)[int(whole["grip"][0, t].argmax())]
 
 
+def test_a_positions_controller_commands_from_the_hand_it_feels_and_the_objects_it_sees():
+    """With ``command="positions"`` the command is the command head's answer for the measured hand
+    and the network's object estimates over the last K steps (padded with the first, as the frames
+    are) and its estimate of the target: not the network's own u_dEE head."""
+    from physint_plugins.geeco.control import DEE_SCALE, Policy, scale_positions
+    from physint_plugins.geeco.model import Geeco
+
+    torch.manual_seed(0)
+    rng = np.random.default_rng(0)
+    model = Geeco("geeco-f", image_size=32, width=0.25, command="positions")
+    policy = Policy(model)
+    policy.reset(rng.integers(0, 255, (32, 32, 3), dtype=np.uint8))
+    hands, objects, own = [], [], []
+    for t in range(6):
+        hand = rng.uniform(-0.2, 0.2, 3) + [0, 0, 0.9]
+        action = policy.act(rng.integers(0, 255, (32, 32, 3), dtype=np.uint8), rng.normal(size=7).astype(np.float32),
+                            hand)
+        hands.append(scale_positions(hand))
+        objects.append(scale_positions(policy.last["obj"]))
+        padded = [np.array(([x[0]] * 3 + x)[-4:])[None] for x in (hands, objects)]
+        with torch.no_grad():
+            expected = model.command_from_positions(*map(torch.from_numpy, padded),
+                                                    torch.from_numpy(policy.last["goal"][None] / 0.1).float())
+        assert np.allclose(action[:3], expected[0].numpy() * DEE_SCALE, atol=1e-4)
+        own.append(action[:3])
+    assert len({tuple(np.round(a, 6)) for a in own}) == 6  # it moves with what it sees and feels
+    # eval.positions=true: the true object and target positions replace the network's estimates
+    obj, goal = np.array([0.05, -0.1, 0.85]), np.array([-0.08, 0.12])
+    action = policy.act(rng.integers(0, 255, (32, 32, 3), dtype=np.uint8), rng.normal(size=7).astype(np.float32),
+                        hand, (obj, goal))
+    padded = [np.array((x + [scale_positions(v)])[-4:])[None] for x, v in ((hands, hand), (objects, obj))]
+    with torch.no_grad():
+        expected = model.command_from_positions(*map(torch.from_numpy, padded), torch.from_numpy(goal[None] / 0.1).float())
+    assert np.allclose(action[:3], expected[0].numpy() * DEE_SCALE, atol=1e-4)
+
+
 def test_binned_commands_decode_their_two_hot_targets_and_pick_one_of_two_modes():
     from physint_plugins.geeco.model import decode_bins, two_hot
 

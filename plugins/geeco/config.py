@@ -51,6 +51,9 @@ class TrainConfig:
     readout: str = field_("keypoints", "how the encoders' maps reach the LSTM: flatten (Table 6.A.1) or keypoints "
                                        "(a spatial softmax per channel: its expected image position; pick-and-place "
                                        "PLACE 84.5 % against 22.5 % flattened, docs/geeco.md)")
+    command: str = field_("network", "where u_dEE comes from: network (its u_dEE head, the thesis) or positions (an MLP "
+                                     "over the hand's measured position and the network's estimates of the object's "
+                                     "and the target's over the buffer, learned from the demonstrations' true ones)")
     val_episodes: int = field_(12, "closed-loop validation episodes after each epoch picking the best checkpoint "
                                     "(0: validation loss instead)")
     dagger_epochs: str = field_("", "comma-separated epochs before which the controller drives the robot from "
@@ -67,6 +70,9 @@ class EvalConfig:
     episodes: int = field_(200, "test episodes (thesis: 1,000)")
     steps: int = field_(200, "control steps per episode (thesis: 200, 8 s)")
     per_unit: int = field_(10, "episodes per work unit")
+    positions: str = field_("seen", "for train.command=positions controllers: seen (the network's estimates of the "
+                                    "object's and the target's positions) or true (the simulator's: what the command "
+                                    "head does with perfect perception)")
 
 
 @dataclass

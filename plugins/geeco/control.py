@@ -55,15 +55,23 @@ class Policy:
         self.model = model.eval().to(device)
         self.device = device
         self.buffer: deque = deque(maxlen=model.buffer)
+        self.positions: deque = deque(maxlen=model.buffer)  # command="positions": (hand, object) per step
         self.target = None
         self.last: dict[str, Any] = {}
 
     def reset(self, target_rgb: np.ndarray | None) -> None:
         self.buffer.clear()
+        self.positions.clear()
         self.target = None if target_rgb is None else to_tensor_frames(target_rgb)[None].to(self.device)
 
-    def act(self, rgb: np.ndarray, joints: np.ndarray) -> np.ndarray:
-        """The next robot action ``(dx, dy, dz, gripper)``; NaN where the network diverged."""
+    def act(self, rgb: np.ndarray, joints: np.ndarray, hand: np.ndarray | None = None,
+            truth: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+        """The next robot action ``(dx, dy, dz, gripper)``; NaN where the network diverged.
+
+        ``hand``: the hand's measured position (proprioception, m), which a ``command="positions"``
+        controller takes with its estimates of the object's and the target's (without it, its own
+        estimate of the hand's); ``truth``: the object's true position (3) and the target's (2), m,
+        to use instead of those estimates (``eval.positions=true``)."""
         import torch
 
         frame = to_tensor_frames(rgb)[None, None].to(self.device)  # (1, 1, 3, S, S)
@@ -80,11 +88,33 @@ class Policy:
                                                           self.target).items()}
             else:
                 out = self.model.decide(torch.cat([s for _, _, s in self.buffer], dim=1))
+        if self.model.command == "positions":
+            if truth is not None:
+                out["obj"] = torch.from_numpy(scale_positions(truth[0]))[None].to(out["obj"].device)
+                out["goal"] = torch.as_tensor(np.asarray(truth[1], np.float32) / POS_SCALE)[None].to(out["obj"].device)
+            out["dee"] = self._command_from_positions(out, hand)
         dee = out["dee"][0].float().cpu().numpy() * DEE_SCALE
         grip = GRIP_COMMAND[int(out["grip"][0].argmax())]
         self.last = {"ee": unscale_positions(out["ee"][0].float().cpu().numpy()),
                      "obj": unscale_positions(out["obj"][0].float().cpu().numpy()), "frames": frames}
+        if "goal" in out:
+            self.last["goal"] = out["goal"][0].float().cpu().numpy() * POS_SCALE
         return np.array([*dee, grip], dtype=float)
+
+    def _command_from_positions(self, out: dict[str, Any], hand: np.ndarray | None):
+        """u_dEE from the command head: the hand's and the object's positions over the last K steps
+        (padded with the first at an episode's start, as the frames are) and the target's."""
+        import torch
+
+        obj = out["obj"][0].float()
+        ee = out["ee"][0].float() if hand is None else torch.from_numpy(scale_positions(hand)).to(obj.device)
+        step = (ee, obj)
+        if not self.positions:
+            self.positions.extend([step] * (self.positions.maxlen - 1))
+        self.positions.append(step)
+        history = [torch.stack([p[i] for p in self.positions])[None] for i in (0, 1)]
+        with torch.no_grad():
+            return self.model.command_from_positions(*history, out["goal"].float())
 
 
 def observe(sim, step: int, prisma: bool) -> np.ndarray:
@@ -105,8 +135,10 @@ def expert_target(sim, ep: S.Episode, resolution: int, horizon: int = 100) -> np
 
 
 def run_episode(sim, ep: S.Episode, policy: Policy, target_rgb: np.ndarray | None, steps: int, resolution: int,
-                on_step=None) -> dict[str, Any]:
-    """One closed-loop episode from ``ep``'s start state; ``on_step(t, rgb, action, policy)`` sees each step."""
+                on_step=None, true_positions: bool = False) -> dict[str, Any]:
+    """One closed-loop episode from ``ep``'s start state; ``on_step(t, rgb, action, policy)`` sees each step.
+    ``true_positions``: a ``command="positions"`` controller gets the simulator's object and target
+    positions instead of its network's estimates."""
     sim.reset(S.build_scene(ep, resolution))
     policy.reset(target_rgb)
     reach = pick = diverged = False
@@ -116,7 +148,8 @@ def run_episode(sim, ep: S.Episode, policy: Policy, target_rgb: np.ndarray | Non
     for step in range(steps):
         rgb = observe(sim, step, ep.scene == "prisma")
         state = sim.robot.state()
-        action = policy.act(rgb, np.asarray(state.joints, dtype=np.float32))
+        truth = (sim.get_pose(ep.object)[0], ep.xy(ep.target)) if true_positions else None
+        action = policy.act(rgb, np.asarray(state.joints, dtype=np.float32), np.asarray(state.ee_pos), truth)
         if on_step is not None:
             on_step(step, rgb, action, policy)
         if not np.all(np.isfinite(action)):

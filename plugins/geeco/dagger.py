@@ -66,7 +66,7 @@ def rollout(sim, ep: S.Episode, policy: Policy, target: np.ndarray, horizon: int
         state, rgb = sim.robot.state(), observe(sim, t, False)
         label = expert.act(sim)
         record_step(out, t, sim, ep, state, rgb, label)
-        action = policy.act(rgb, np.asarray(state.joints, dtype=np.float32))
+        action = policy.act(rgb, np.asarray(state.joints, dtype=np.float32), np.asarray(state.ee_pos))
         if not np.all(np.isfinite(action)):
             return None
         if beta > 0 and rng.random() < beta:

@@ -22,6 +22,7 @@ from physint_cli.method import Context, Unit, unit_seed
 
 from . import scenes as S
 
+POSITIONS = ("seen", "true")
 NAMES = {"push": {"reach": "REACH", "success": "PUSH"},
          "pickplace": {"reach": "REACH", "pick": "PICK", "success": "PLACE"}}
 
@@ -103,7 +104,8 @@ def _eval_episodes(ctx: Context, unit: Unit) -> list[dict[str, Any]]:
                     if target is None:
                         out.append({"index": spec["index"], "no_target": True})
                         continue
-            result = run_episode(sim, ep, policy, target, ctx.config.eval.steps, resolution)
+            result = run_episode(sim, ep, policy, target, ctx.config.eval.steps, resolution,
+                                 true_positions=ctx.config.eval.positions == "true")
             out.append({"index": spec["index"], "task": ep.goal_text(), **result})
     finally:
         if sim is not None:
@@ -137,6 +139,11 @@ def evaluate(ctx: Context) -> dict[str, Any]:
     cfg = ctx.config.eval
     if cfg.episodes < 1 or cfg.steps < 1 or cfg.per_unit < 1:
         raise BadInput("eval.episodes, eval.steps and eval.per_unit must be >= 1")
+    if cfg.positions not in POSITIONS:
+        raise BadInput(f"eval.positions must be one of {', '.join(POSITIONS)}, got {cfg.positions!r}")
+    if cfg.positions == "true" and meta["kwargs"].get("command", "network") != "positions":
+        raise BadInput("eval.positions=true feeds true positions to a command head: this controller was not "
+                       "trained with train.command=positions")
     specs = plan_episodes(ctx, meta, cfg.episodes)
     units = [Unit("test", i, len(chunk), ctx.seed, {"episodes": chunk})
              for i, chunk in enumerate(specs[j:j + cfg.per_unit] for j in range(0, len(specs), cfg.per_unit))]
@@ -146,7 +153,8 @@ def evaluate(ctx: Context) -> dict[str, Any]:
     summary = summarize(results, meta["skill"])
     _save_table(ctx, results)
     return {"model": meta["model"], "skill": meta["skill"], "trained_on": {"scene": meta["scene"],
-            "backend": meta["backend"]}, "scene": ctx.scene, "backend": ctx.backend, "steps": cfg.steps, **summary}
+            "backend": meta["backend"]}, "scene": ctx.scene, "backend": ctx.backend, "steps": cfg.steps,
+            "positions": cfg.positions, **summary}
 
 
 def _save_table(ctx: Context, results: list[dict[str, Any]]) -> None:

@@ -42,6 +42,13 @@ transformers do). The loss is cross-entropy on the nearest centre plus the MSE o
 offset; the command is the most likely centre plus its offset. Per-axis bins choose each axis on
 its own, so where the demonstrations go several ways every axis can fall to its middle bin, zero;
 one class for the whole command cannot.
+
+``command="positions"`` (not in the thesis) adds a head for the target's position q_TGT (x, y; MSE
+with the other positions) and takes u_dEE from a command head instead of the ``dee`` head: an MLP
+over the hand's and the object's positions over the buffer and the target's. It learns from the
+demonstrations' true positions (``position_dee``, MSE with u_dEE); in control it gets the hand's
+measured position (proprioception) and the network's estimates q_OBJ and q_TGT. Where things are
+is what the network has to see; what to do there is learned from numbers.
 """
 
 from __future__ import annotations
@@ -59,6 +66,8 @@ JOINTS = 7
 GRIPPER_CLASSES = 3  # open, no-op, close
 VARIANTS = ("geeco-f", "geeco-d", "geeco-r", "e2evmc")
 READOUTS = ("flatten", "keypoints")
+COMMANDS = ("network", "positions")
+COMMAND_HIDDEN = 256
 
 
 class Encoder(nn.Module):
@@ -120,7 +129,7 @@ def feature_shape(size: int, width: float, min_side: int = 1, stem_stride: int =
 class Geeco(nn.Module):
     def __init__(self, variant: str = "geeco-f", image_size: int = 64, width: float = 1.0, buffer: int = BUFFER,
                  norm: bool = False, min_side: int = 1, stem_stride: int = 1, dee_bins: int = 0,
-                 dee_modes: int = 0, readout: str = "flatten"):
+                 dee_modes: int = 0, readout: str = "flatten", command: str = "network"):
         super().__init__()
         if variant not in VARIANTS:
             raise ValueError(f"variant {variant!r} is not known; valid: {', '.join(VARIANTS)}")
@@ -130,8 +139,10 @@ class Geeco(nn.Module):
             raise ValueError(f"dee_modes must be 0 (off) or >= 2, and not with dee_bins; got {dee_modes}")
         if readout not in READOUTS:
             raise ValueError(f"readout {readout!r} is not known; valid: {', '.join(READOUTS)}")
+        if command not in COMMANDS:
+            raise ValueError(f"command {command!r} is not known; valid: {', '.join(COMMANDS)}")
         self.variant, self.image_size, self.width, self.buffer = variant, image_size, width, buffer
-        self.readout = readout
+        self.readout, self.command = readout, command
         self.dee_bins, self.dee_modes = dee_bins, dee_modes
         if dee_modes:  # the k-means centres of the demonstrated commands (set_modes), saved with the weights
             self.register_buffer("dee_centres", torch.zeros(dee_modes, 3))
@@ -152,6 +163,11 @@ class Geeco(nn.Module):
         self.heads = nn.ModuleDict({"dee": nn.Linear(HIDDEN, dee_outputs),
                                     "grip": nn.Linear(HIDDEN, GRIPPER_CLASSES),
                                     "ee": nn.Linear(HIDDEN, 3), "obj": nn.Linear(HIDDEN, 3)})
+        if command == "positions":  # where the target is (x, y), and u_dEE from positions alone
+            self.heads["goal"] = nn.Linear(HIDDEN, 2)
+            self.command_head = nn.Sequential(
+                nn.Linear(buffer * 6 + 2, COMMAND_HIDDEN), nn.ReLU(), nn.Linear(COMMAND_HIDDEN, COMMAND_HIDDEN),
+                nn.ReLU(), nn.Linear(COMMAND_HIDDEN, COMMAND_HIDDEN), nn.ReLU(), nn.Linear(COMMAND_HIDDEN, 3))
 
     def set_modes(self, commands, seed: int = 0) -> None:
         """Fit the ``dee_modes`` centres to the scaled commands (..., 3) of the training demonstrations."""
@@ -175,12 +191,34 @@ class Geeco(nn.Module):
         tiled = joints[:, :, None, None].expand(-1, -1, side, side).to(maps[0].dtype)
         return torch.cat([*maps, tiled], dim=1).flatten(1)
 
-    def forward(self, frames: torch.Tensor, joints: torch.Tensor, target: torch.Tensor | None = None
-                ) -> dict[str, torch.Tensor]:
+    def forward(self, frames: torch.Tensor, joints: torch.Tensor, target: torch.Tensor | None = None,
+                positions: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None) -> dict[str, torch.Tensor]:
         """frames (B, T, 3, S, S) in [0, 1], oldest first; joints (B, T, 7); target (B, 3, S, S).
 
         Returns each head for the W = T - K + 1 windows ending at frames K-1 .. T-1: (B, W, ...).
+        With ``command="positions"`` and the demonstrations' true ``positions`` (hand (B, T, 3), object
+        (B, T, 3), target (B, 2), scaled), also ``position_dee`` (B, W, 3): the command head's answer
+        for each window from them (how it is trained).
         """
+        out = self._heads(frames, joints, target)
+        if positions is not None and self.command == "positions":
+            hand, obj, goal = positions
+            k = self.buffer
+            w = hand.shape[1] - k + 1
+            windows = [x.unfold(1, k, 1).transpose(-1, -2) for x in (hand, obj)]  # (B, W, K, 3)
+            out["position_dee"] = self.command_from_positions(*windows, goal[:, None].expand(-1, w, -1))
+        return out
+
+    def command_from_positions(self, hand: torch.Tensor, obj: torch.Tensor, goal: torch.Tensor) -> torch.Tensor:
+        """u_dEE (..., 3) from the hand's and the object's positions over the buffer (..., K, 3) and the
+        target's (..., 2), all scaled (``command="positions"``): an MLP, so the command is a function
+        of where things are, and the network only has to see where they are."""
+        x = torch.cat([torch.stack([hand, obj], dim=-2).flatten(-3), goal], dim=-1)  # per step: hand, object
+        with torch.autocast(x.device.type, enabled=False):  # millimetres matter: bf16 keeps ~1 mm at 25 cm
+            return self.command_head(x.float())
+
+    def _heads(self, frames: torch.Tensor, joints: torch.Tensor, target: torch.Tensor | None
+               ) -> dict[str, torch.Tensor]:
         b, t = frames.shape[:2]
         k = self.buffer
         w = t - k + 1
@@ -300,7 +338,9 @@ def geeco_loss(out: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], aux
     (``dee_modes``) the cross-entropy on the nearest of the model's ``centres`` plus the MSE of that
     centre's offset.
 
-    ``batch`` holds the scaled targets ``dee``, ``ee``, ``obj`` (B, W, 3) and ``grip`` (B, W) class ids.
+    ``batch`` holds the scaled targets ``dee``, ``ee``, ``obj`` (B, W, 3) and ``grip`` (B, W) class ids;
+    with ``command="positions"`` also ``goal`` (B, 2), the target's position (MSE with the other positions),
+    and the command head's ``position_dee`` in ``out`` adds its MSE to u_dEE's.
     """
     if "dee_logits" in out:  # binned u_dEE: cross-entropy on two-hot targets, per axis
         logits = out["dee_logits"].float().flatten(0, -3)  # (windows, 3, bins)
@@ -316,5 +356,9 @@ def geeco_loss(out: dict[str, torch.Tensor], batch: dict[str, torch.Tensor], aux
         dee = F.mse_loss(out["dee"].float(), batch["dee"])
     grip = F.cross_entropy(out["grip"].float().flatten(0, 1), batch["grip"].flatten().long())
     aux = F.mse_loss(out["ee"].float(), batch["ee"]) + F.mse_loss(out["obj"].float(), batch["obj"])
+    if "goal" in out:  # command="positions": where the target is, and the command from true positions
+        aux = aux + F.mse_loss(out["goal"].float(), batch["goal"][:, None].expand_as(out["goal"]))
+    if "position_dee" in out:
+        dee = dee + F.mse_loss(out["position_dee"], batch["dee"])
     total = dee + grip + aux_weight * aux
     return total, {"dee": float(dee.detach()), "grip": float(grip.detach()), "aux": float(aux.detach())}

@@ -19,22 +19,23 @@ from physint_cli.errors import BadInput
 from physint_cli.method import Context
 
 from . import scenes as S
-from .control import DEE_SCALE, scale_positions
+from .control import DEE_SCALE, POS_SCALE, scale_positions
 from .dagger import Aggregation, parse_epochs
-from .model import BUFFER, READOUTS
+from .model import BUFFER, COMMANDS, READOUTS
 
 SCHEDULES = ("cosine", "constant")
 FIELDS = ["rgb", "joints", "ee", "obj", "dee", "grip", "layout", "task", "seed"]
 
 
 def build_model(name: str, image_size: int, width: float, norm: bool = False, min_side: int = 1,
-                stem_stride: int = 1, dee_bins: int = 0, dee_modes: int = 0, readout: str = "flatten"):
+                stem_stride: int = 1, dee_bins: int = 0, dee_modes: int = 0, readout: str = "flatten",
+                command: str = "network"):
     """A registered GEECO model (``register_models``)."""
     from physint_cli.training import registered_model
 
     kwargs = {"image_size": int(image_size), "width": float(width), "norm": bool(norm), "min_side": int(min_side),
               "stem_stride": int(stem_stride), "dee_bins": int(dee_bins), "dee_modes": int(dee_modes),
-              "readout": str(readout)}
+              "readout": str(readout), "command": str(command)}
     return registered_model("geeco", name).build(**kwargs), kwargs
 
 
@@ -56,6 +57,8 @@ class Chunks:
         self.d = {k: demos[k] for k in ("rgb", "joints", "dee", "grip")}
         self.d["target"] = demos["rgb"][:, -1]  # I_T: a demonstration's last frame
         self.pos = {k: scale_positions(demos[k]) for k in ("ee", "obj")}
+        if "goal" in demos:  # the target's (x, y), for command="positions"
+            self.pos["goal"] = (np.asarray(demos["goal"], np.float32) / POS_SCALE).astype(np.float32)
 
     @property
     def demos(self) -> int:
@@ -68,7 +71,7 @@ class Chunks:
             raise ValueError(f"episodes of shape {more['rgb'].shape[1:]} cannot join {self.d['rgb'].shape[1:]}")
         for k in self.d:
             self.d[k] = np.concatenate([self.d[k], more[k]])
-        for k in self.pos:
+        for k in ("ee", "obj"):
             self.pos[k] = np.concatenate([self.pos[k], scale_positions(more[k])])
 
     def __len__(self) -> int:
@@ -87,7 +90,16 @@ class Chunks:
                 "dee": torch.from_numpy(self.d["dee"][demo, windows] / DEE_SCALE),
                 "grip": torch.from_numpy(self.d["grip"][demo, windows].astype(np.int64)),
                 "ee": torch.from_numpy(self.pos["ee"][demo, windows]),
-                "obj": torch.from_numpy(self.pos["obj"][demo, windows])}
+                "obj": torch.from_numpy(self.pos["obj"][demo, windows]),
+                **({"hand_steps": torch.from_numpy(self.pos["ee"][demo, frames]),  # every frame's, for the
+                    "obj_steps": torch.from_numpy(self.pos["obj"][demo, frames]),  # command head
+                    "goal": torch.from_numpy(self.pos["goal"][demo])} if "goal" in self.pos else {})}
+
+
+def true_positions(batch: dict[str, Any]):
+    """The demonstrations' hand and object positions at every frame of a chunk and the target's, from
+    which a ``command="positions"`` controller's command head learns (None for the others)."""
+    return (batch["hand_steps"], batch["obj_steps"], batch["goal"]) if "goal" in batch else None
 
 
 def to_float_frames(batch: dict[str, Any]) -> dict[str, Any]:
@@ -144,8 +156,8 @@ class ValidationLoss:
         with torch.no_grad():
             for batch in loader:
                 batch = to_float_frames(batch)
-                loss, _ = geeco_loss(model(batch["frames"], batch["joints"], batch["target"]), batch, self.aux_weight,
-                                     getattr(model, "dee_centres", None))
+                out = model(batch["frames"], batch["joints"], batch["target"], true_positions(batch))
+                loss, _ = geeco_loss(out, batch, self.aux_weight, getattr(model, "dee_centres", None))
                 total += float(loss) * len(batch["frames"])
                 n += len(batch["frames"])
         return -total / max(n, 1)
@@ -180,18 +192,28 @@ def train(ctx: Context) -> dict[str, Any]:
         raise BadInput(f"train.dee_modes must be 0 (off) or >= 2, got {cfg.dee_modes}")
     if cfg.readout not in READOUTS:
         raise BadInput(f"train.readout must be one of {', '.join(READOUTS)}, got {cfg.readout!r}")
+    if cfg.command not in COMMANDS:
+        raise BadInput(f"train.command must be one of {', '.join(COMMANDS)}, got {cfg.command!r}")
     if cfg.dee_modes and cfg.dee_bins:
         raise BadInput("train.dee_bins and train.dee_modes are two ways to read u_dEE: set one of them")
     if cfg.width <= 0 or cfg.lr <= 0 or cfg.aux_weight < 0 or cfg.val_episodes < 0:
         raise BadInput("train.width and train.lr must be > 0, train.aux_weight and train.val_episodes >= 0")
     rounds = parse_epochs(cfg.dagger_epochs, cfg.epochs, skill)
+    if rounds and cfg.command == "positions":
+        raise BadInput("train.command=positions learns from the demonstrations' targets; DAgger's rollouts "
+                       "(train.dagger_epochs) do not carry them: use one of the two")
+    if cfg.command == "positions" and (cfg.dee_bins or cfg.dee_modes):
+        raise BadInput("train.command=positions regresses u_dEE from positions: not with train.dee_bins or train.dee_modes")
     if rounds and cfg.dagger_episodes < 1:
         raise BadInput(f"train.dagger_episodes must be >= 1, got {cfg.dagger_episodes}")
     if not 0 <= cfg.dagger_beta < 1:
         raise BadInput(f"train.dagger_beta must be in [0, 1), got {cfg.dagger_beta}")
     model, kwargs = build_model(name, data_cfg["resolution"], cfg.width, cfg.norm, cfg.min_side, cfg.stem_stride,
-                                cfg.dee_bins, cfg.dee_modes, cfg.readout)
+                                cfg.dee_bins, cfg.dee_modes, cfg.readout, cfg.command)
     train_demos, val_demos = load_split(ctx.data, "train"), load_split(ctx.data, "val")
+    if cfg.command == "positions":
+        for demos in (train_demos, val_demos):
+            demos["goal"] = np.array([ep.xy(ep.target) for ep in episodes_of(demos, scene, skill)], np.float32)
     if cfg.dee_modes:
         model.set_modes(train_demos["dee"] / DEE_SCALE, seed=ctx.seed)
     train_set, val_set = Chunks(train_demos, cfg.chunk), Chunks(val_demos, cfg.chunk)
@@ -201,7 +223,7 @@ def train(ctx: Context) -> dict[str, Any]:
             f"({len(train_set)} chunks of {cfg.chunk} windows), validating on {len(val_demos['rgb'])}")
 
     def loss_fn(net, batch):
-        out = net(batch["frames"], batch["joints"], batch["target"])
+        out = net(batch["frames"], batch["joints"], batch["target"], true_positions(batch))
         loss, _ = geeco_loss(out, batch, cfg.aux_weight, getattr(model, "dee_centres", None))  # Eq. 6.3
         return loss
 
