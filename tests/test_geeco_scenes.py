@@ -293,6 +293,11 @@ def test_a_positions_controller_commands_from_the_hand_it_feels_and_the_objects_
         assert np.allclose(action[:3], expected[0].numpy() * DEE_SCALE, atol=1e-4)
         own.append(action[:3])
     assert len({tuple(np.round(a, 6)) for a in own}) == 6  # it moves with what it sees and feels
+    # its network sees the frames only: its estimates cannot lean on where the joints put the hand
+    frames, target = torch.rand(1, 5, 3, 32, 32), torch.rand(1, 3, 32, 32)
+    with torch.no_grad():
+        a, b = (model(frames, torch.randn(1, 5, 7), target) for _ in range(2))
+    assert all(torch.equal(a[k], b[k]) for k in ("obj", "goal", "ee", "grip"))
     # eval.positions=true: the true object and target positions replace the network's estimates
     obj, goal = np.array([0.05, -0.1, 0.85]), np.array([-0.08, 0.12])
     action = policy.act(rng.integers(0, 255, (32, 32, 3), dtype=np.uint8), rng.normal(size=7).astype(np.float32),

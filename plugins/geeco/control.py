@@ -88,7 +88,7 @@ class Policy:
                                                           self.target).items()}
             else:
                 out = self.model.decide(torch.cat([s for _, _, s in self.buffer], dim=1))
-        if self.model.command == "positions":
+        if getattr(self.model, "command", "network") == "positions":
             if truth is not None:
                 out["obj"] = torch.from_numpy(scale_positions(truth[0]))[None].to(out["obj"].device)
                 out["goal"] = torch.as_tensor(np.asarray(truth[1], np.float32) / POS_SCALE)[None].to(out["obj"].device)

@@ -48,7 +48,8 @@ with the other positions) and takes u_dEE from a command head instead of the ``d
 over the hand's and the object's positions over the buffer and the target's. It learns from the
 demonstrations' true positions (``position_dee``, MSE with u_dEE); in control it gets the hand's
 measured position (proprioception) and the network's estimates q_OBJ and q_TGT. Where things are
-is what the network has to see; what to do there is learned from numbers.
+is what the network has to see; what to do there is learned from numbers. Its network sees the
+frames only, not the joint angles (``_state``).
 """
 
 from __future__ import annotations
@@ -183,7 +184,13 @@ class Geeco(nn.Module):
 
     def _state(self, maps: list[torch.Tensor], joints: torch.Tensor) -> torch.Tensor:
         """Concatenate feature maps (N, C, s, s) with the tiled joint angles (N, 7); flatten (with
-        ``readout="keypoints"``: each map's keypoints, then the joint angles)."""
+        ``readout="keypoints"``: each map's keypoints, then the joint angles). With ``command="positions"``
+        the joint angles are zeros: the network only sees, so its estimate of where the object is
+        cannot lean on where the hand is (in the demonstrations the two move together, and in
+        closed loop an estimate that follows the hand leads the hand on; the command head gets the
+        hand's position instead)."""
+        if self.command == "positions":
+            joints = torch.zeros_like(joints)
         if self.readout == "keypoints":
             points = [spatial_softmax(m, self.keypoint_temperature.exp()) for m in maps]
             return torch.cat([*points, joints.to(points[0].dtype)], dim=1)
