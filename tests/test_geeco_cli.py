@@ -122,7 +122,7 @@ def test_a_diverging_controller_fails_its_episode_without_stopping_the_evaluatio
         def reset(self, target):
             pass
 
-        def act(self, rgb, joints):
+        def act(self, rgb, joints, hand=None, truth=None):
             self.calls += 1
             return np.array([0.01, 0.0, 0.0, 0.0]) if self.calls < 5 else np.array([np.nan, 0.0, 0.0, 0.0])
 
@@ -246,7 +246,7 @@ class _ExpertWithDetour:
     def reset(self, target):
         pass
 
-    def act(self, rgb, joints, hand=None):
+    def act(self, rgb, joints, hand=None, truth=None):
         action = self.expert.act(self.sim)
         self.commands.append(action.copy())
         if self.t < self.detour:
@@ -276,7 +276,7 @@ def test_dagger_labels_the_states_a_controller_reaches_with_the_experts_commands
     assert not np.allclose(r["dee"][:8], commands[:8, :3] + [0, 0.01, 0])  # the detour is not what it labels
     assert (r["target"] == demos["rgb"][0, -1]).all() and r["rgb"].shape == (100, 32, 32, 3) and r["on_target"]
     # a controller that never moves, overruled by the expert at a step's chance of beta
-    still = type("Still", (), {"reset": lambda self, target: None, "act": lambda self, rgb, joints, hand: np.zeros(4)})()
+    still = type("Still", (), {"reset": lambda self, target: None, "act": lambda self, rgb, joints, hand=None, truth=None: np.zeros(4)})()
     with pb.make("mujoco", S.build_scene(ep, 32)) as sim:
         assert not rollout(sim, ep, still, demos["rgb"][0, -1], 100)["on_target"]
         assert rollout(sim, ep, still, demos["rgb"][0, -1], 100, beta=0.95, rng=np.random.default_rng(0))["on_target"]

@@ -137,6 +137,7 @@ def expert_target(sim, ep: S.Episode, resolution: int, horizon: int = 100) -> np
 def run_episode(sim, ep: S.Episode, policy: Policy, target_rgb: np.ndarray | None, steps: int, resolution: int,
                 on_step=None, true_positions: bool = False) -> dict[str, Any]:
     """One closed-loop episode from ``ep``'s start state; ``on_step(t, rgb, action, policy)`` sees each step.
+    ``policy`` has :class:`Policy`'s ``reset(target_rgb)`` and ``act(rgb, joints, hand, truth)``.
     ``true_positions``: a ``command="positions"`` controller gets the simulator's object and target
     positions instead of its network's estimates."""
     sim.reset(S.build_scene(ep, resolution))
