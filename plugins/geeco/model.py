@@ -226,6 +226,7 @@ class Geeco(nn.Module):
 
     def _heads(self, frames: torch.Tensor, joints: torch.Tensor, target: torch.Tensor | None
                ) -> dict[str, torch.Tensor]:
+        """The network's heads for every window of the chunk (``forward`` without the command head)."""
         b, t = frames.shape[:2]
         k = self.buffer
         w = t - k + 1
