@@ -221,17 +221,17 @@ def test_bad_training_settings_exit_2(tiny_pipeline, tmp_path):
                              ("train.schedule=step", "train.schedule must be one of cosine, constant"),
                              ("train.dagger_epochs=1", "train.dagger_epochs must lie in [2, train.epochs = 2]"),
                              ("train.dagger_epochs=two", "train.dagger_epochs must be comma-separated epoch numbers"),
-                             ("train.dagger_beta=1", "train.dagger_beta must be in [0, 1)")):
+                             ("train.dagger_beta=1", "train.dagger_beta must be in [0, 1)"),
+                             ("train.command_epochs=-1", "train.command_epochs >= 0")):
         code, _, err = call("train", "geeco", "--preset", "tiny", "--data", str(out / "dataset"), "--set", setting,
                             "--out", str(tmp_path / "r"))
         assert code == 2 and message in err, (setting, err)
     code, _, err = call("train", "geeco", "--preset", "tiny", "--data", str(out / "dataset"), "--set",
                         "train.dee_bins=5", "--set", "train.dee_modes=5", "--out", str(tmp_path / "r"))
     assert code == 2 and "set one of them" in err, err
-    for setting, message in (("train.dagger_epochs=2", "use one of the two"), ("train.dee_bins=5", "not with train.dee_bins")):
-        code, _, err = call("train", "geeco", "--preset", "tiny", "--data", str(out / "dataset"), "--set",
-                            "train.command=positions", "--set", setting, "--out", str(tmp_path / "r"))
-        assert code == 2 and message in err, (setting, err)
+    code, _, err = call("train", "geeco", "--preset", "tiny", "--data", str(out / "dataset"), "--set",
+                        "train.command=positions", "--set", "train.dee_bins=5", "--out", str(tmp_path / "r"))
+    assert code == 2 and "not with train.dee_bins" in err, err
 
 
 class _ExpertWithDetour:
@@ -338,17 +338,41 @@ def test_a_controller_with_classified_commands_trains_evaluates_and_keeps_its_he
     assert json.loads(stdout)["metrics"]["episodes"] == 2
 
 
+def goal_demos(root, split):
+    """A split of the tiny push demonstrations with each one's target position ``goal`` (x, y)."""
+    from physint_plugins.geeco.train import episodes_of, load_split
+
+    demos = load_split(root, split)
+    demos["goal"] = np.array([ep.xy(ep.target) for ep in episodes_of(demos, "goal2cube2", "push")], np.float32)
+    return demos
+
+
 def test_a_controller_commanded_from_positions_trains_evaluates_and_keeps_its_heads(tiny_pipeline, tmp_path):
-    from physint_plugins.geeco.train import load_controller
+    """Trained with a DAgger round: the rollouts carry their targets' positions, and the command head
+    the controller keeps is the one its first stage chose (the network's training leaves it alone)."""
+    from torch.nn import functional as F
+
+    from physint_plugins.geeco.train import Chunks, load_controller
 
     out, _ = tiny_pipeline
     run = tmp_path / "positions"
-    code, _, err = call("train", "geeco", "--preset", "tiny", "--data", str(out / "dataset"),
-                        "--set", "train.command=positions", "--out", str(run))
+    code, stdout, err = call("train", "geeco", "--preset", "tiny", "--data", str(out / "dataset"), "--set",
+                             "train.command=positions", "--set", "train.dagger_epochs=2", "--set",
+                             "train.dagger_episodes=2", "--out", str(run), "--json")
     assert code == 0, err
+    metrics = json.loads(stdout)["metrics"]
     model, meta = load_controller(run)
     assert model.command == "positions" and meta["kwargs"]["command"] == "positions"
     assert model.heads["goal"].out_features == 2 and model.command_head[0].in_features == 4 * 6 + 2
+    inputs, dee = Chunks(goal_demos(out / "dataset", "val"), 8).position_windows()
+    with torch.no_grad():
+        kept = float(F.mse_loss(model.command_from_positions(*inputs), dee))
+    assert kept == pytest.approx(metrics["command_head"]["val_mse"], rel=1e-5)
+    rollouts = np.load(run / "dagger" / "epoch-002.npz")
+    demos = goal_demos(out / "dataset", "train")
+    for goal, start in zip(rollouts["goal"], rollouts["obj"][:, 0]):  # a rollout starts from a training start
+        i = int(np.argmin(np.linalg.norm(demos["obj"][:, 0] - start, axis=1)))  # state: its goal is that one's
+        assert np.allclose(goal, demos["goal"][i]) and np.allclose(start, demos["obj"][i, 0], atol=1e-3)
     code, stdout, err = call("eval", "geeco", "--run", str(run), "--out", str(tmp_path / "eval"), "--json")
     assert code == 0, err
     assert json.loads(stdout)["metrics"]["episodes"] == 2
@@ -367,31 +391,20 @@ def test_the_command_head_learns_the_experts_commands_from_true_positions(tiny_p
     """Trained on the tiny demonstrations' positions alone (hand, cube over the buffer, pad), the
     command head of ``command="positions"`` answers the expert's commands on those windows far better
     than their mean does (8 demonstrations are too few to generalise from; docs/geeco.md has the
-    held-out figures)."""
-    from physint_cli.training import seed_everything
+    held-out figures); then it is frozen for the network's training."""
+    from torch.nn import functional as F
+
     from physint_plugins.geeco.model import Geeco
-    from physint_plugins.geeco.train import Chunks, episodes_of, load_split
+    from physint_plugins.geeco.train import Chunks, fit_command_head
 
     out, _ = tiny_pipeline
-
-    def windows(split):
-        demos = load_split(out / "dataset", split)
-        demos["goal"] = np.array([ep.xy(ep.target) for ep in episodes_of(demos, "goal2cube2", "push")], np.float32)
-        batch = torch.utils.data.default_collate(list(Chunks(demos, 100)))
-        k = 4
-        hand, obj = (batch[key].unfold(1, k, 1).transpose(-1, -2) for key in ("hand_steps", "obj_steps"))
-        return hand, obj, batch["goal"][:, None].expand(-1, hand.shape[1], -1), batch["dee"]
-
-    seed_everything(0)
+    demos = Chunks(goal_demos(out / "dataset", "train"), 8)
     model = Geeco("e2evmc", image_size=32, width=0.25, command="positions")
-    opt = torch.optim.Adam(model.command_head.parameters(), lr=1e-3)
-    hand, obj, goal, dee = windows("train")
-    for _ in range(400):
-        loss = ((model.command_from_positions(hand, obj, goal) - dee) ** 2).mean()
-        opt.zero_grad()
-        loss.backward()
-        opt.step()
+    stats = fit_command_head(model, demos, demos, epochs=40, seed=0, log=lambda _: None, batch_size=64)
+    inputs, dee = demos.position_windows()
+    assert inputs[0].shape == (8 * 100, 4, 3) and inputs[2].shape == (8 * 100, 2) and dee.shape == (8 * 100, 3)
     with torch.no_grad():
-        mse = float(((model.command_from_positions(hand, obj, goal) - dee) ** 2).mean())
-    mean_mse = float(((dee - dee.mean(dim=(0, 1))) ** 2).mean())
-    assert mse < 0.5 * mean_mse, (mse, mean_mse)
+        mse = float(F.mse_loss(model.command_from_positions(*inputs), dee))
+    assert mse == pytest.approx(stats["val_mse"], rel=1e-5)
+    assert mse < 0.5 * stats["val_mse_of_the_mean_command"], stats
+    assert not any(p.requires_grad for p in model.command_head.parameters())

@@ -54,6 +54,9 @@ class TrainConfig:
     command: str = field_("network", "where u_dEE comes from: network (its u_dEE head, the thesis) or positions (an MLP "
                                      "over the hand's measured position and the network's estimates of the object's "
                                      "and the target's over the buffer, learned from the demonstrations' true ones)")
+    command_epochs: int = field_(30, "train.command=positions: epochs over the demonstrations' windows in which the "
+                                     "command head learns alone from true positions, before the network trains with it "
+                                     "fixed (0: it learns with the network, one loss)")
     val_episodes: int = field_(12, "closed-loop validation episodes after each epoch picking the best checkpoint "
                                     "(0: validation loss instead)")
     dagger_epochs: str = field_("", "comma-separated epochs before which the controller drives the robot from "
@@ -91,7 +94,7 @@ class GeecoConfig:
 
 PRESETS = {
     "tiny": {"data.demos": 16, "data.resolution": 32, "data.per_shard": 8, "train.epochs": 2, "train.batch_size": 4,
-             "train.width": 0.25, "train.val_episodes": 1, "eval.episodes": 2, "eval.steps": 60, "eval.per_unit": 1,
+             "train.width": 0.25, "train.val_episodes": 1, "train.command_epochs": 2, "eval.episodes": 2, "eval.steps": 60, "eval.per_unit": 1,
              "deploy.steps": 40},
     "small": {},
     "paper": {"data.demos": 4000, "data.resolution": 256, "data.per_shard": 25, "data.action_noise": 0.0,

@@ -36,6 +36,11 @@ def scale_positions(q: np.ndarray) -> np.ndarray:
     return (np.asarray(q, dtype=np.float32) - np.array([0.0, 0.0, S.TABLE_Z], np.float32)) / POS_SCALE
 
 
+def scale_goal(xy: np.ndarray) -> np.ndarray:
+    """The target's (x, y) on the table (m) in the network's units (the table centre is the origin)."""
+    return (np.asarray(xy, dtype=np.float32) / POS_SCALE).astype(np.float32)
+
+
 def unscale_positions(q: np.ndarray) -> np.ndarray:
     return np.asarray(q, dtype=float) * POS_SCALE + np.array([0.0, 0.0, S.TABLE_Z])
 
@@ -91,7 +96,7 @@ class Policy:
         if getattr(self.model, "command", "network") == "positions":
             if truth is not None:
                 out["obj"] = torch.from_numpy(scale_positions(truth[0]))[None].to(out["obj"].device)
-                out["goal"] = torch.as_tensor(np.asarray(truth[1], np.float32) / POS_SCALE)[None].to(out["obj"].device)
+                out["goal"] = torch.from_numpy(scale_goal(truth[1]))[None].to(out["obj"].device)
             out["dee"] = self._command_from_positions(out, hand)
         dee = out["dee"][0].float().cpu().numpy() * DEE_SCALE
         grip = GRIP_COMMAND[int(out["grip"][0].argmax())]

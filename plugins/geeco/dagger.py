@@ -7,7 +7,8 @@ robot from ``train.dagger_episodes`` training start states for H steps (at each 
 probability ``train.dagger_beta``, the expert's command is executed instead: beta_i of Ross et
 al.), and the push expert,
 a feedback law on the current state (:meth:`Expert._push`), labels every state the controller
-reached with the command it would give there. These labelled rollouts (with the target image
+reached with the command it would give there (and the simulator with the hand's, the object's
+and the target's true positions, which ``train.command=positions`` controllers learn to see). These labelled rollouts (with the target image
 of their start state) join the training demonstrations for the remaining epochs, so the
 controller learns what to do in the states its own errors lead to.
 
@@ -32,7 +33,7 @@ from .control import Policy, observe
 from .dataset import empty_episode, record_step
 from .expert import Expert, on_target
 
-ROLLOUT_FIELDS = ("rgb", "joints", "ee", "obj", "dee", "grip", "target")
+ROLLOUT_FIELDS = ("rgb", "joints", "ee", "obj", "dee", "grip", "target", "goal")
 
 
 def parse_epochs(text: str, epochs: int, skill: str) -> list[int]:
@@ -74,6 +75,7 @@ def rollout(sim, ep: S.Episode, policy: Policy, target: np.ndarray, horizon: int
         expert.follow(label, action)
         sim.robot.act(action)
     out["target"] = target
+    out["goal"] = np.asarray(ep.xy(ep.target), np.float32)  # where the object belongs (x, y), m
     out["on_target"] = np.bool_(on_target(ep, sim))
     return out
 

@@ -209,11 +209,7 @@ class Geeco(nn.Module):
         """
         out = self._heads(frames, joints, target)
         if positions is not None and self.command == "positions":
-            hand, obj, goal = positions
-            k = self.buffer
-            w = hand.shape[1] - k + 1
-            windows = [x.unfold(1, k, 1).transpose(-1, -2) for x in (hand, obj)]  # (B, W, K, 3)
-            out["position_dee"] = self.command_from_positions(*windows, goal[:, None].expand(-1, w, -1))
+            out["position_dee"] = self.command_from_positions(*position_windows(*positions, self.buffer))
         return out
 
     def command_from_positions(self, hand: torch.Tensor, obj: torch.Tensor, goal: torch.Tensor) -> torch.Tensor:
@@ -280,6 +276,14 @@ class Geeco(nn.Module):
             rows = torch.arange(len(best), device=best.device)
             heads["dee"] = self.dee_centres[best] + heads["mode_offsets"][rows, best].float()  # centre + its offset
         return heads
+
+
+def position_windows(hand: torch.Tensor, obj: torch.Tensor, goal: torch.Tensor, buffer: int = BUFFER
+                     ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Per-step positions of the hand and the object (B, T, 3) and the target's (B, 2) -> the command
+    head's inputs for the W = T - K + 1 windows ending at steps K-1 .. T-1: (B, W, K, 3) twice and (B, W, 2)."""
+    hand_w, obj_w = (x.unfold(1, buffer, 1).transpose(-1, -2) for x in (hand, obj))
+    return hand_w, obj_w, goal[:, None].expand(-1, hand_w.shape[1], -1)
 
 
 def command_modes(commands, modes: int, seed: int = 0) -> "np.ndarray":

@@ -19,7 +19,7 @@ from physint_cli.errors import BadInput
 from physint_cli.method import Context
 
 from . import scenes as S
-from .control import DEE_SCALE, POS_SCALE, scale_positions
+from .control import DEE_SCALE, scale_goal, scale_positions
 from .dagger import Aggregation, parse_epochs
 from .model import BUFFER, COMMANDS, READOUTS
 
@@ -58,7 +58,7 @@ class Chunks:
         self.d["target"] = demos["rgb"][:, -1]  # I_T: a demonstration's last frame
         self.pos = {k: scale_positions(demos[k]) for k in ("ee", "obj")}
         if "goal" in demos:  # the target's (x, y), for command="positions"
-            self.pos["goal"] = (np.asarray(demos["goal"], np.float32) / POS_SCALE).astype(np.float32)
+            self.pos["goal"] = scale_goal(demos["goal"])
 
     @property
     def demos(self) -> int:
@@ -73,9 +73,25 @@ class Chunks:
             self.d[k] = np.concatenate([self.d[k], more[k]])
         for k in ("ee", "obj"):
             self.pos[k] = np.concatenate([self.pos[k], scale_positions(more[k])])
+        if "goal" in self.pos:
+            self.pos["goal"] = np.concatenate([self.pos["goal"], scale_goal(more["goal"])])
 
     def __len__(self) -> int:
         return self.demos * self.per_demo
+
+    def position_windows(self):
+        """Every window of every demonstration as the command head of ``command="positions"`` sees it:
+        the hand's and the object's positions over the buffer (N, K, 3; padded with the first step at
+        an episode's start) and the target's (N, 2), with the expert's u_dEE (N, 3); all scaled."""
+        import torch
+
+        from .model import position_windows
+
+        steps = np.clip(np.arange(1 - self.buffer, self.horizon), 0, None)
+        hand, obj = (torch.from_numpy(self.pos[k][:, steps]) for k in ("ee", "obj"))
+        inputs = position_windows(hand, obj, torch.from_numpy(self.pos["goal"]), self.buffer)
+        dee = torch.from_numpy((self.d["dee"] / DEE_SCALE).astype(np.float32))
+        return tuple(x.flatten(0, 1) for x in inputs), dee.flatten(0, 1)
 
     def __getitem__(self, index: int) -> dict[str, Any]:
         import torch
@@ -94,6 +110,53 @@ class Chunks:
                 **({"hand_steps": torch.from_numpy(self.pos["ee"][demo, frames]),  # every frame's, for the
                     "obj_steps": torch.from_numpy(self.pos["obj"][demo, frames]),  # command head
                     "goal": torch.from_numpy(self.pos["goal"][demo])} if "goal" in self.pos else {})}
+
+
+def fit_command_head(model, train_set: Chunks, val_set: Chunks, epochs: int, seed: int, log,
+                     batch_size: int = 256, lr: float = 1e-3) -> dict[str, float]:
+    """The first stage of ``train.command=positions``: the command head alone learns the expert's u_dEE
+    from the demonstrations' true positions, every window (MSE; Adam, the rate cosine-decayed to 0),
+    keeping the epoch with the lowest validation MSE; then it is frozen. The network trains after it,
+    so the closed-loop validation that picks the network's checkpoint drives the robot with the
+    command head the controller keeps (learned jointly, the head is only as far as the chosen epoch)."""
+    import copy
+
+    import torch
+    from torch.nn import functional as F
+
+    (hand, obj, goal), dee = train_set.position_windows()
+    val_inputs, val_dee = val_set.position_windows()
+    head = model.command_head
+    head.requires_grad_(True)
+    optimizer = torch.optim.Adam(head.parameters(), lr=lr)
+    per_epoch = max(1, len(dee) // batch_size)
+    schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, epochs * per_epoch)
+    generator = torch.Generator().manual_seed(seed)
+
+    def val_mse() -> float:
+        with torch.no_grad():
+            return float(F.mse_loss(model.command_from_positions(*val_inputs), val_dee))
+
+    best = (val_mse(), copy.deepcopy(head.state_dict()))
+    for epoch in range(1, epochs + 1):
+        order = torch.randperm(len(dee), generator=generator)
+        total = 0.0
+        for b in range(per_epoch):
+            i = order[b * batch_size:(b + 1) * batch_size]
+            loss = F.mse_loss(model.command_from_positions(hand[i], obj[i], goal[i]), dee[i])
+            optimizer.zero_grad()
+            loss.backward()
+            optimizer.step()
+            schedule.step()
+            total += float(loss.detach())
+        mse = val_mse()
+        log(f"command head epoch {epoch}/{epochs}: train MSE {total / per_epoch:.4f}, val MSE {mse:.4f}")
+        if mse < best[0]:
+            best = (mse, copy.deepcopy(head.state_dict()))
+    head.load_state_dict(best[1])
+    head.requires_grad_(False)
+    mean_mse = float(F.mse_loss(dee.mean(0).expand_as(val_dee), val_dee))
+    return {"val_mse": best[0], "val_mse_of_the_mean_command": mean_mse, "train_windows": len(dee)}
 
 
 def true_positions(batch: dict[str, Any]):
@@ -142,10 +205,11 @@ class ClosedLoopProgress:
 
 
 class ValidationLoss:
-    """Validation metric when ``train.val_episodes`` is 0: minus the loss of Eq. 6.3."""
+    """Validation metric when ``train.val_episodes`` is 0: minus the loss of Eq. 6.3 (with the command
+    head's if it learns with the network, ``joint_command``)."""
 
-    def __init__(self, aux_weight: float):
-        self.aux_weight = aux_weight
+    def __init__(self, aux_weight: float, joint_command: bool = False):
+        self.aux_weight, self.joint_command = aux_weight, joint_command
 
     def __call__(self, model, loader) -> float:
         import torch
@@ -156,7 +220,8 @@ class ValidationLoss:
         with torch.no_grad():
             for batch in loader:
                 batch = to_float_frames(batch)
-                out = model(batch["frames"], batch["joints"], batch["target"], true_positions(batch))
+                out = model(batch["frames"], batch["joints"], batch["target"],
+                            true_positions(batch) if self.joint_command else None)
                 loss, _ = geeco_loss(out, batch, self.aux_weight, getattr(model, "dee_centres", None))
                 total += float(loss) * len(batch["frames"])
                 n += len(batch["frames"])
@@ -196,12 +261,10 @@ def train(ctx: Context) -> dict[str, Any]:
         raise BadInput(f"train.command must be one of {', '.join(COMMANDS)}, got {cfg.command!r}")
     if cfg.dee_modes and cfg.dee_bins:
         raise BadInput("train.dee_bins and train.dee_modes are two ways to read u_dEE: set one of them")
-    if cfg.width <= 0 or cfg.lr <= 0 or cfg.aux_weight < 0 or cfg.val_episodes < 0:
-        raise BadInput("train.width and train.lr must be > 0, train.aux_weight and train.val_episodes >= 0")
+    if cfg.width <= 0 or cfg.lr <= 0 or cfg.aux_weight < 0 or cfg.val_episodes < 0 or cfg.command_epochs < 0:
+        raise BadInput("train.width and train.lr must be > 0, train.aux_weight, train.val_episodes and "
+                       "train.command_epochs >= 0")
     rounds = parse_epochs(cfg.dagger_epochs, cfg.epochs, skill)
-    if rounds and cfg.command == "positions":
-        raise BadInput("train.command=positions learns from the demonstrations' targets; DAgger's rollouts "
-                       "(train.dagger_epochs) do not carry them: use one of the two")
     if cfg.command == "positions" and (cfg.dee_bins or cfg.dee_modes):
         raise BadInput("train.command=positions regresses u_dEE from positions: not with train.dee_bins or train.dee_modes")
     if rounds and cfg.dagger_episodes < 1:
@@ -221,16 +284,20 @@ def train(ctx: Context) -> dict[str, Any]:
                               data_cfg["horizon"], cfg.dagger_beta, ctx.log) if rounds else None
     ctx.log(f"training {name} on {len(train_demos['rgb'])} {skill} demonstrations of {scene} "
             f"({len(train_set)} chunks of {cfg.chunk} windows), validating on {len(val_demos['rgb'])}")
+    command_head = None
+    if cfg.command == "positions" and cfg.command_epochs:  # first the command head, from true positions
+        command_head = fit_command_head(model, train_set, val_set, cfg.command_epochs, ctx.seed, ctx.log)
+    joint_command = cfg.command == "positions" and not cfg.command_epochs  # or with the network
 
     def loss_fn(net, batch):
-        out = net(batch["frames"], batch["joints"], batch["target"], true_positions(batch))
+        out = net(batch["frames"], batch["joints"], batch["target"], true_positions(batch) if joint_command else None)
         loss, _ = geeco_loss(out, batch, cfg.aux_weight, getattr(model, "dee_centres", None))  # Eq. 6.3
         return loss
 
     if cfg.val_episodes > 0:
         metric = ClosedLoopProgress(ctx, val_demos, skill, cfg.val_episodes, ctx.config.eval.steps)
     else:
-        metric = ValidationLoss(cfg.aux_weight)
+        metric = ValidationLoss(cfg.aux_weight, joint_command)
     make_optimizer = None
     if cfg.schedule == "cosine":
         def make_optimizer(net):
@@ -246,7 +313,8 @@ def train(ctx: Context) -> dict[str, Any]:
     return {"model": name, "skill": skill, "scene": scene, "epochs": result.epochs,
             "val_metric": result.best_metric, "val_metric_is": "closed-loop task progress" if cfg.val_episodes
             else "minus validation loss (Eq. 6.3)", "train_demos": len(train_demos["rgb"]),
-            "val_demos": len(val_demos["rgb"]), "dagger": aggregation.stats if aggregation else []}
+            "val_demos": len(val_demos["rgb"]), "dagger": aggregation.stats if aggregation else [],
+            **({"command_head": command_head} if command_head else {})}
 
 
 def load_controller(run_dir, device: str = "cpu"):
