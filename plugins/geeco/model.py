@@ -46,8 +46,9 @@ one class for the whole command cannot.
 ``command="positions"`` (not in the thesis) adds a head for the target's position q_TGT (x, y; MSE
 with the other positions) and takes u_dEE from a command head instead of the ``dee`` head: an MLP
 over the hand's and the object's positions over the buffer and the target's. It learns from the
-demonstrations' true positions (``position_dee``, MSE with u_dEE); in control it gets the hand's
-measured position (proprioception) and the network's estimates q_OBJ and q_TGT. Where things are
+demonstrations' true positions (MSE with u_dEE): alone and first (``train.fit_command_head``), or with
+the network (``position_dee`` in the loss); in control it gets the hand's measured position
+(proprioception) and the network's estimates q_OBJ and q_TGT. Where things are
 is what the network has to see; what to do there is learned from numbers. Its network sees the
 frames only, not the joint angles (``_state``).
 """
