@@ -15,7 +15,9 @@ Steps, for each skill (push, pick-and-place) on GOAL2CUBE2:
 4. (``goal1cube1``) GOAL1CUBE1 with E2EVMC beside GEECO-F: Table 6.C.1;
 5. (``transfer``) the pick-and-place controllers in FG:CLUTTER, BG:PRISMA, NUTONCONE and BALLINCUP:
    Table 6.4.2;
-6. (``cross``) the pushing GEECO-F trained on this backend, evaluated on the others (not in the thesis).
+6. (``cross``) the pushing GEECO-F trained on this backend, evaluated on the others (not in the thesis);
+7. (``positions``) the pushing GEECO-F with u_dEE from positions and DAgger rounds (``POSITIONS``, not
+   in the thesis), evaluated on its own position estimates and on the simulator's.
 
 Results are read back from each run's ``metrics.json``; nothing here computes a metric itself.
 """
@@ -48,6 +50,9 @@ TRANSFER = {
     ("ballincup", "geeco-d"): (50.60, 9.70, 0.20), ("ballincup", "geeco-f"): (54.60, 16.30, 1.50),
 }
 LABELS = {"push": ("REACH", "PUSH"), "pickplace": ("REACH", "PICK", "PLACE")}
+# the push controller that takes u_dEE from the positions it sees (docs/geeco.md, session 15)
+POSITIONS = ["--set", "train.command=positions", "--set", "train.dagger_epochs=6,8,10"]
+STEPS = ("push", "pickplace", "goal1cube1", "transfer", "cross", "positions")
 GOALS = {"data_min": 15.0, "train_min": 45.0, "hz": 50.0,
          "push": {"REACH": 0.90, "PUSH": 0.50}, "pickplace": {"PICK": 0.40, "PLACE": 0.25}}
 
@@ -64,13 +69,12 @@ def thesis_text(values: tuple[float, ...] | None) -> str:
 def main(argv: list[str] | None = None) -> int:
     parser = benchmark_parser(__doc__, "geeco")
     parser.add_argument("--models", default="geeco-f,geeco-d,geeco-r")
-    parser.add_argument("--skip", default="", help="comma-separated steps to leave out: "
-                                                   "push, pickplace, goal1cube1, transfer, cross")
+    parser.add_argument("--skip", default="", help=f"comma-separated steps to leave out: {', '.join(STEPS)}")
     args = parser.parse_args(argv)
     skip = {s.strip() for s in args.skip.split(",") if s.strip()}
-    unknown = skip - {"push", "pickplace", "goal1cube1", "transfer", "cross"}
+    unknown = skip - set(STEPS)
     if unknown:
-        parser.error(f"--skip takes push, pickplace, goal1cube1, transfer, cross; got {', '.join(sorted(unknown))}")
+        parser.error(f"--skip takes {', '.join(STEPS)}; got {', '.join(sorted(unknown))}")
     models = [m.strip() for m in args.models.split(",") if m.strip()]
     b = Steps(Path(args.home).resolve(), args.preset, args.workers, args.backend)
     rows: list[tuple[str, str, str, str]] = []
@@ -82,9 +86,9 @@ def main(argv: list[str] | None = None) -> int:
         return b.dataset(f"dataset-{name}", b.home / f"data-{name}",
                          ["geeco", "--scene", scene, "--backend", args.backend, "--set", f"data.skill={skill}"])
 
-    def train(name: str, data: Path, model: str) -> Path:
+    def train(name: str, data: Path, model: str, *extra: str) -> Path:
         return b.train(f"train-{name}-{model}", b.home / f"train-{name}-{model}",
-                       ["geeco", "--data", str(data), "--model", model, "--backend", args.backend])
+                       ["geeco", "--data", str(data), "--model", model, "--backend", args.backend, *extra])
 
     def evaluate(key: str, run: Path, *extra: str) -> dict:
         return b.verb(f"eval-{key}", b.home / f"eval-{key}", ["eval", "geeco", "--run", str(run), *w, *extra])
@@ -141,6 +145,17 @@ def main(argv: list[str] | None = None) -> int:
             figures[f"push-geeco-f-on-{other}"] = m
             rows.append((f"push: geeco-f trained on {args.backend}, run on {other}", "not in the thesis",
                          rates_text(m, LABELS["push"]), f"{m['no_target']} without a target"))
+
+    if "positions" not in skip and "push" not in skip:
+        run = train("push-positions", b.home / "data-push", "geeco-f", *POSITIONS)
+        rows.append(("push: geeco-f, u_dEE from positions, training wall time", "not in the thesis",
+                     minutes(b.times.get("train-push-positions-geeco-f")), f"<= {GOALS['train_min']:.0f} min"))
+        for positions in ("seen", "true"):
+            m = evaluate(f"push-positions-{positions}", run, "--set", f"eval.positions={positions}")
+            figures[f"push-positions-{positions}"] = m
+            rows.append((f"push: geeco-f, u_dEE from {positions} positions, REACH / PUSH %", "not in the thesis",
+                         rates_text(m, LABELS["push"]), "REACH >= 90.0 %, PUSH >= 50.0 %" if positions == "seen"
+                         else "the command head alone"))
 
     report(f"geeco benchmark, preset {args.preset}, backend {args.backend}", rows, figures, b, args.json)
     return 0
