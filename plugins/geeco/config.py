@@ -94,8 +94,8 @@ class GeecoConfig:
 
 PRESETS = {
     "tiny": {"data.demos": 16, "data.resolution": 32, "data.per_shard": 8, "train.epochs": 2, "train.batch_size": 4,
-             "train.width": 0.25, "train.val_episodes": 1, "train.command_epochs": 2, "eval.episodes": 2, "eval.steps": 60, "eval.per_unit": 1,
-             "deploy.steps": 40},
+             "train.width": 0.25, "train.val_episodes": 1, "train.command_epochs": 2, "eval.episodes": 2,
+             "eval.steps": 60, "eval.per_unit": 1, "deploy.steps": 40},
     "small": {},
     "paper": {"data.demos": 4000, "data.resolution": 256, "data.per_shard": 25, "data.action_noise": 0.0,
               "train.epochs": 40, "train.batch_size": 32, "train.chunk": 1, "train.lr": 1e-4,

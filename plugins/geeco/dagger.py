@@ -8,9 +8,10 @@ probability ``train.dagger_beta``, the expert's command is executed instead: bet
 al.), and the push expert,
 a feedback law on the current state (:meth:`Expert._push`), labels every state the controller
 reached with the command it would give there (and the simulator with the hand's, the object's
-and the target's true positions, which ``train.command=positions`` controllers learn to see). These labelled rollouts (with the target image
-of their start state) join the training demonstrations for the remaining epochs, so the
-controller learns what to do in the states its own errors lead to.
+and the target's true positions, which ``train.command=positions`` controllers learn to see).
+These labelled rollouts (with the target image of their start state) join the training
+demonstrations for the remaining epochs, so the controller learns what to do, and where things
+are, in the states its own errors lead to.
 
 Only pushing: the pick-and-place expert is a plan with phases (grasp, lift, carry), whose
 command in a state the controller reached need not be the right one.
