@@ -147,7 +147,7 @@ def main(argv: list[str] | None = None) -> int:
                          rates_text(m, LABELS["push"]), f"{m['no_target']} without a target"))
 
     if "positions" not in skip and "push" not in skip:
-        run = train("push-positions", b.home / "data-push", "geeco-f", *POSITIONS)
+        run = train("push-positions", dataset("push", "goal2cube2", "push"), "geeco-f", *POSITIONS)
         rows.append(("push: geeco-f, u_dEE from positions, training wall time", "not in the thesis",
                      minutes(b.times.get("train-push-positions-geeco-f")), f"<= {GOALS['train_min']:.0f} min"))
         for positions in ("seen", "true"):

@@ -340,11 +340,9 @@ def test_a_controller_with_classified_commands_trains_evaluates_and_keeps_its_he
 
 def goal_demos(root, split):
     """A split of the tiny push demonstrations with each one's target position ``goal`` (x, y)."""
-    from physint_plugins.geeco.train import episodes_of, load_split
+    from physint_plugins.geeco.train import add_goals, load_split
 
-    demos = load_split(root, split)
-    demos["goal"] = np.array([ep.xy(ep.target) for ep in episodes_of(demos, "goal2cube2", "push")], np.float32)
-    return demos
+    return add_goals(load_split(root, split), "goal2cube2", "push")
 
 
 def test_a_controller_commanded_from_positions_trains_evaluates_and_keeps_its_heads(tiny_pipeline, tmp_path):
@@ -394,11 +392,13 @@ def test_the_command_head_learns_the_experts_commands_from_true_positions(tiny_p
     held-out figures); then it is frozen for the network's training."""
     from torch.nn import functional as F
 
+    from physint_cli.training import seed_everything
     from physint_plugins.geeco.model import Geeco
     from physint_plugins.geeco.train import Chunks, fit_command_head
 
     out, _ = tiny_pipeline
     demos = Chunks(goal_demos(out / "dataset", "train"), 8)
+    seed_everything(0)  # the head's initial weights
     model = Geeco("e2evmc", image_size=32, width=0.25, command="positions")
     stats = fit_command_head(model, demos, demos, epochs=40, seed=0, log=lambda _: None, batch_size=64)
     inputs, dee = demos.position_windows()

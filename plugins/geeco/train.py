@@ -178,6 +178,12 @@ def episodes_of(demos: dict[str, np.ndarray], scene: str, skill: str) -> list[S.
             for i in range(len(demos["layout"]))]
 
 
+def add_goals(demos: dict[str, np.ndarray], scene: str, skill: str) -> dict[str, np.ndarray]:
+    """Give ``demos`` each one's target position ``goal`` (x, y, m), which ``command="positions"`` learns."""
+    demos["goal"] = np.array([ep.xy(ep.target) for ep in episodes_of(demos, scene, skill)], np.float32)
+    return demos
+
+
 class ClosedLoopProgress:
     """Validation metric: mean task progress over validation episodes run with the network
     (push: (REACH + PUSH) / 2; pick-and-place: (REACH + PICK + PLACE) / 3)."""
@@ -276,7 +282,7 @@ def train(ctx: Context) -> dict[str, Any]:
     train_demos, val_demos = load_split(ctx.data, "train"), load_split(ctx.data, "val")
     if cfg.command == "positions":
         for demos in (train_demos, val_demos):
-            demos["goal"] = np.array([ep.xy(ep.target) for ep in episodes_of(demos, scene, skill)], np.float32)
+            add_goals(demos, scene, skill)
     if cfg.dee_modes:
         model.set_modes(train_demos["dee"] / DEE_SCALE, seed=ctx.seed)
     train_set, val_set = Chunks(train_demos, cfg.chunk), Chunks(val_demos, cfg.chunk)
