@@ -1,7 +1,7 @@
 """GEECO (thesis Chapter 6) beside the thesis's numbers, with physint's own commands.
 
     python benchmarks/geeco.py [--preset small] [--home DIR] [--workers 2] [--models geeco-f,geeco-d,geeco-r]
-                               [--skip pickplace,goal1cube1,transfer,cross]
+                               [--skip pickplace,goal1cube1,transfer,cross,commands]
 
 Every step is a plain ``physint`` command run in its own process (printed as it starts); a step
 whose result is already under ``--home`` is not run again, so an interrupted benchmark resumes.
@@ -16,8 +16,10 @@ Steps, for each skill (push, pick-and-place) on GOAL2CUBE2:
 5. (``transfer``) the pick-and-place controllers in FG:CLUTTER, BG:PRISMA, NUTONCONE and BALLINCUP:
    Table 6.4.2;
 6. (``cross``) the pushing GEECO-F trained on this backend, evaluated on the others (not in the thesis);
-7. (``positions``) the pushing GEECO-F with u_dEE from positions and DAgger rounds (``POSITIONS``, not
-   in the thesis), evaluated on its own position estimates and on the simulator's.
+7. (``commands``) where the pushing GEECO-F's u_dEE comes from: the small preset's controller takes it
+   from positions (``train.command=auto``, with DAgger rounds; not in the thesis), here also evaluated
+   on the simulator's positions, beside a GEECO-F with the thesis's end-to-end command
+   (``--set train.command=network``). A preset whose controller is end-to-end (paper) skips this.
 
 Results are read back from each run's ``metrics.json``; nothing here computes a metric itself.
 """
@@ -31,7 +33,7 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from commands import Steps, benchmark_parser, minutes, pct, report  # noqa: E402
+from commands import Steps, benchmark_parser, metrics, minutes, pct, report  # noqa: E402
 
 # Table 6.4.1 (lambda = 1) and Table 6.C.1: (REACH, PUSH) and (REACH, PICK, PLACE) in %
 THESIS = {
@@ -50,9 +52,9 @@ TRANSFER = {
     ("ballincup", "geeco-d"): (50.60, 9.70, 0.20), ("ballincup", "geeco-f"): (54.60, 16.30, 1.50),
 }
 LABELS = {"push": ("REACH", "PUSH"), "pickplace": ("REACH", "PICK", "PLACE")}
-# the push controller that takes u_dEE from the positions it sees (docs/geeco.md, session 15)
-POSITIONS = ["--set", "train.command=positions", "--set", "train.dagger_epochs=6,8,10"]
-STEPS = ("push", "pickplace", "goal1cube1", "transfer", "cross", "positions")
+# the thesis's end-to-end command, beside the small preset's push controller commanded from positions
+END_TO_END = ["--set", "train.command=network"]
+STEPS = ("push", "pickplace", "goal1cube1", "transfer", "cross", "commands")
 GOALS = {"data_min": 15.0, "train_min": 45.0, "hz": 50.0,
          "push": {"REACH": 0.90, "PUSH": 0.50}, "pickplace": {"PICK": 0.40, "PLACE": 0.25}}
 
@@ -146,16 +148,19 @@ def main(argv: list[str] | None = None) -> int:
             rows.append((f"push: geeco-f trained on {args.backend}, run on {other}", "not in the thesis",
                          rates_text(m, LABELS["push"]), f"{m['no_target']} without a target"))
 
-    if "positions" not in skip and "push" not in skip:
-        run = train("push-positions", dataset("push", "goal2cube2", "push"), "geeco-f", *POSITIONS)
-        rows.append(("push: geeco-f, u_dEE from positions, training wall time", "not in the thesis",
-                     minutes(b.times.get("train-push-positions-geeco-f")), f"<= {GOALS['train_min']:.0f} min"))
-        for positions in ("seen", "true"):
-            m = evaluate(f"push-positions-{positions}", run, "--set", f"eval.positions={positions}")
-            figures[f"push-positions-{positions}"] = m
-            rows.append((f"push: geeco-f, u_dEE from {positions} positions, REACH / PUSH %", "not in the thesis",
-                         rates_text(m, LABELS["push"]), "REACH >= 90.0 %, PUSH >= 50.0 %" if positions == "seen"
-                         else "the command head alone"))
+    push_f = trained.get(("push", "geeco-f"))
+    if "commands" not in skip and push_f is not None and metrics(push_f).get("command") == "positions":
+        m = evaluate("push-geeco-f-true-positions", push_f, "--set", "eval.positions=true")
+        figures["push-geeco-f-true-positions"] = m
+        rows.append(("push: geeco-f, its command head on the simulator's positions, REACH / PUSH %",
+                     "not in the thesis", rates_text(m, LABELS["push"]), "the command head alone"))
+        run = train("push-end-to-end", dataset("push", "goal2cube2", "push"), "geeco-f", *END_TO_END)
+        rows.append(("push: geeco-f, u_dEE from the network (the thesis), training wall time", "48 h (GPU)",
+                     minutes(b.times.get("train-push-end-to-end-geeco-f")), f"<= {GOALS['train_min']:.0f} min"))
+        m = evaluate("push-end-to-end", run)
+        figures["push-end-to-end"] = m
+        rows.append(("push: geeco-f, u_dEE from the network (the thesis), REACH / PUSH %",
+                     thesis_text(THESIS[("push", "geeco-f")]), rates_text(m, LABELS["push"]), "-"))
 
     report(f"geeco benchmark, preset {args.preset}, backend {args.backend}", rows, figures, b, args.json)
     return 0

@@ -336,6 +336,10 @@ def test_a_controller_with_classified_commands_trains_evaluates_and_keeps_its_he
     code, stdout, err = call("eval", "geeco", "--run", str(run), "--out", str(tmp_path / "eval"), "--json")
     assert code == 0, err
     assert json.loads(stdout)["metrics"]["episodes"] == 2
+    # with bins or modes, train.command=auto gives the network's u_dEE: no command head to feed true positions
+    code, _, err = call("eval", "geeco", "--run", str(run), "--set", "eval.positions=true", "--out",
+                        str(tmp_path / "bad"))
+    assert code == 2 and "not trained with train.command=positions" in err, err
 
 
 def goal_demos(root, split):
@@ -345,20 +349,18 @@ def goal_demos(root, split):
     return add_goals(load_split(root, split), "goal2cube2", "push")
 
 
-def test_a_controller_commanded_from_positions_trains_evaluates_and_keeps_its_heads(tiny_pipeline, tmp_path):
-    """Trained with a DAgger round: the rollouts carry their targets' positions, and the command head
-    the controller keeps is the one its first stage chose (the network's training leaves it alone)."""
+def test_the_small_presets_push_controller_is_commanded_from_positions_and_trained_with_dagger(tiny_pipeline, tmp_path):
+    """``train.command=auto`` and ``train.dagger_epochs=auto`` (the tiny and small presets): the
+    pipeline's push controller takes u_dEE from positions and trains with a DAgger round before its
+    last epoch; the rollouts carry their targets' positions, and the command head the controller
+    keeps is the one its first stage chose (the network's training leaves it alone)."""
     from torch.nn import functional as F
 
     from physint_plugins.geeco.train import Chunks, load_controller
 
-    out, _ = tiny_pipeline
-    run = tmp_path / "positions"
-    code, stdout, err = call("train", "geeco", "--preset", "tiny", "--data", str(out / "dataset"), "--set",
-                             "train.command=positions", "--set", "train.dagger_epochs=2", "--set",
-                             "train.dagger_episodes=2", "--out", str(run), "--json")
-    assert code == 0, err
-    metrics = json.loads(stdout)["metrics"]
+    out, result = tiny_pipeline
+    run, metrics = out / "train", result["train"]["metrics"]
+    assert metrics["command"] == "positions" and metrics["dagger_epochs"] == [2] and len(metrics["dagger"]) == 1
     model, meta = load_controller(run)
     assert model.command == "positions" and meta["kwargs"]["command"] == "positions"
     assert model.heads["goal"].out_features == 2 and model.command_head[0].in_features == 4 * 6 + 2
@@ -368,21 +370,36 @@ def test_a_controller_commanded_from_positions_trains_evaluates_and_keeps_its_he
     assert kept == pytest.approx(metrics["command_head"]["val_mse"], rel=1e-5)
     rollouts = np.load(run / "dagger" / "epoch-002.npz")
     demos = goal_demos(out / "dataset", "train")
+    assert len(rollouts["goal"]) == 2  # the tiny preset's train.dagger_episodes
     for goal, start in zip(rollouts["goal"], rollouts["obj"][:, 0]):  # a rollout starts from a training start
         i = int(np.argmin(np.linalg.norm(demos["obj"][:, 0] - start, axis=1)))  # state: its goal is that one's
         assert np.allclose(goal, demos["goal"][i]) and np.allclose(start, demos["obj"][i, 0], atol=1e-3)
-    code, stdout, err = call("eval", "geeco", "--run", str(run), "--out", str(tmp_path / "eval"), "--json")
-    assert code == 0, err
-    assert json.loads(stdout)["metrics"]["episodes"] == 2
     # the command head with the simulator's positions instead of the network's estimates
     code, stdout, err = call("eval", "geeco", "--run", str(run), "--set", "eval.positions=true",
                              "--out", str(tmp_path / "eval-true"), "--json")
     assert code == 0, err
     assert json.loads(stdout)["metrics"]["positions"] == "true"
-    for run_dir, setting, message in ((run, "eval.positions=guessed", "eval.positions must be one of seen, true"),
-                                      (out / "train", "eval.positions=true", "not trained with train.command=positions")):
-        code, _, err = call("eval", "geeco", "--run", str(run_dir), "--set", setting, "--out", str(tmp_path / "bad"))
-        assert code == 2 and message in err, (setting, err)
+    code, _, err = call("eval", "geeco", "--run", str(run), "--set", "eval.positions=guessed", "--out",
+                        str(tmp_path / "bad"))
+    assert code == 2 and "eval.positions must be one of seen, true" in err, err
+
+
+@pytest.mark.parametrize("skill, command, epochs, rounds", [
+    ("push", "positions", 12, [6, 8, 10]), ("push", "positions", 2, [2]), ("push", "positions", 1, []),
+    ("push", "network", 12, []), ("pickplace", "network", 12, [])])
+def test_automatic_dagger_rounds_are_for_positions_controllers_of_pushing(skill, command, epochs, rounds):
+    from physint_plugins.geeco.dagger import parse_epochs
+    from physint_plugins.geeco.train import resolve_command
+
+    assert parse_epochs("auto", epochs, skill, command) == rounds
+    assert resolve_command("auto", skill) == ("positions" if skill == "push" else "network")
+    assert resolve_command(command, skill) == command
+
+
+def test_the_paper_preset_keeps_the_thesiss_end_to_end_command():
+    from physint_plugins.geeco.config import PRESETS
+
+    assert PRESETS["paper"]["train.command"] == "network" and PRESETS["paper"]["train.dagger_epochs"] == ""
 
 
 def test_the_command_head_learns_the_experts_commands_from_true_positions(tiny_pipeline):

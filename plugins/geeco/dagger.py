@@ -37,14 +37,24 @@ from .expert import Expert, on_target
 ROLLOUT_FIELDS = ("rgb", "joints", "ee", "obj", "dee", "grip", "target", "goal")
 
 
-def parse_epochs(text: str, epochs: int, skill: str) -> list[int]:
-    """``train.dagger_epochs`` ("6,8,10") as sorted epoch numbers; bad values exit 2."""
+AUTO_ROUNDS = (3, 4, 5)  # train.dagger_epochs=auto: rounds before the epochs at 3/6, 4/6, 5/6 of the training
+
+
+def parse_epochs(text: str, epochs: int, skill: str, command: str = "network") -> list[int]:
+    """``train.dagger_epochs`` ("6,8,10") as sorted epoch numbers; bad values exit 2. ``auto``: for a
+    positions controller of pushing (``command``), rounds before the epochs at 1/2, 2/3 and 5/6 of
+    the training (6, 8, 10 of 12; none before epoch 2), else none: for network commands the rounds
+    did not help (docs/geeco.md, session 12)."""
+    if str(text).strip() == "auto":
+        if skill != "push" or command != "positions":
+            return []
+        return sorted({max(2, -(-epochs * k // 6)) for k in AUTO_ROUNDS} & set(range(2, epochs + 1)))
     if not str(text).strip():
         return []
     try:
         rounds = sorted({int(v) for v in str(text).split(",") if v.strip()})
     except ValueError:
-        raise BadInput(f"train.dagger_epochs must be comma-separated epoch numbers, got {text!r}") from None
+        raise BadInput(f"train.dagger_epochs must be comma-separated epoch numbers or auto, got {text!r}") from None
     if rounds and not all(2 <= e <= epochs for e in rounds):
         raise BadInput(f"train.dagger_epochs must lie in [2, train.epochs = {epochs}] (the controller trains on "
                        f"the demonstrations first), got {text!r}")

@@ -234,6 +234,14 @@ class ValidationLoss:
         return -total / max(n, 1)
 
 
+def resolve_command(command: str, skill: str) -> str:
+    """``train.command``: ``auto`` is positions for pushing (its end-to-end u_dEE pushed 14.5 % at the
+    small preset's scale, docs/geeco.md) and network for pick-and-place (the thesis)."""
+    if command == "auto":
+        return "positions" if skill == "push" else "network"
+    return command
+
+
 def train(ctx: Context) -> dict[str, Any]:
     from physint_cli.datasets import read_manifest
     from physint_cli.runs import Run
@@ -263,24 +271,29 @@ def train(ctx: Context) -> dict[str, Any]:
         raise BadInput(f"train.dee_modes must be 0 (off) or >= 2, got {cfg.dee_modes}")
     if cfg.readout not in READOUTS:
         raise BadInput(f"train.readout must be one of {', '.join(READOUTS)}, got {cfg.readout!r}")
-    if cfg.command not in COMMANDS:
-        raise BadInput(f"train.command must be one of {', '.join(COMMANDS)}, got {cfg.command!r}")
+    if cfg.command not in (*COMMANDS, "auto"):
+        raise BadInput(f"train.command must be one of {', '.join(COMMANDS)}, auto, got {cfg.command!r}")
+    command = resolve_command(cfg.command, skill)
     if cfg.dee_modes and cfg.dee_bins:
         raise BadInput("train.dee_bins and train.dee_modes are two ways to read u_dEE: set one of them")
     if cfg.width <= 0 or cfg.lr <= 0 or cfg.aux_weight < 0 or cfg.val_episodes < 0 or cfg.command_epochs < 0:
         raise BadInput("train.width and train.lr must be > 0, train.aux_weight, train.val_episodes and "
                        "train.command_epochs >= 0")
-    rounds = parse_epochs(cfg.dagger_epochs, cfg.epochs, skill)
-    if cfg.command == "positions" and (cfg.dee_bins or cfg.dee_modes):
-        raise BadInput("train.command=positions regresses u_dEE from positions: not with train.dee_bins or train.dee_modes")
+    if command == "positions" and (cfg.dee_bins or cfg.dee_modes):
+        if cfg.command == "auto":  # the small preset's push controller: bins and modes ask for the network's u_dEE
+            command = "network"
+        else:
+            raise BadInput("train.command=positions regresses u_dEE from positions: not with train.dee_bins or "
+                           "train.dee_modes")
+    rounds = parse_epochs(cfg.dagger_epochs, cfg.epochs, skill, command)
     if rounds and cfg.dagger_episodes < 1:
         raise BadInput(f"train.dagger_episodes must be >= 1, got {cfg.dagger_episodes}")
     if not 0 <= cfg.dagger_beta < 1:
         raise BadInput(f"train.dagger_beta must be in [0, 1), got {cfg.dagger_beta}")
     model, kwargs = build_model(name, data_cfg["resolution"], cfg.width, cfg.norm, cfg.min_side, cfg.stem_stride,
-                                cfg.dee_bins, cfg.dee_modes, cfg.readout, cfg.command)
+                                cfg.dee_bins, cfg.dee_modes, cfg.readout, command)
     train_demos, val_demos = load_split(ctx.data, "train"), load_split(ctx.data, "val")
-    if cfg.command == "positions":
+    if command == "positions":
         for demos in (train_demos, val_demos):
             add_goals(demos, scene, skill)
     if cfg.dee_modes:
@@ -291,9 +304,9 @@ def train(ctx: Context) -> dict[str, Any]:
     ctx.log(f"training {name} on {len(train_demos['rgb'])} {skill} demonstrations of {scene} "
             f"({len(train_set)} chunks of {cfg.chunk} windows), validating on {len(val_demos['rgb'])}")
     command_head = None
-    if cfg.command == "positions" and cfg.command_epochs:  # first the command head, from true positions
+    if command == "positions" and cfg.command_epochs:  # first the command head, from true positions
         command_head = fit_command_head(model, train_set, val_set, cfg.command_epochs, ctx.seed, ctx.log)
-    joint_command = cfg.command == "positions" and not cfg.command_epochs  # or with the network
+    joint_command = command == "positions" and not cfg.command_epochs  # or with the network
 
     def loss_fn(net, batch):
         out = net(batch["frames"], batch["joints"], batch["target"], true_positions(batch) if joint_command else None)
@@ -319,7 +332,8 @@ def train(ctx: Context) -> dict[str, Any]:
     return {"model": name, "skill": skill, "scene": scene, "epochs": result.epochs,
             "val_metric": result.best_metric, "val_metric_is": "closed-loop task progress" if cfg.val_episodes
             else "minus validation loss (Eq. 6.3)", "train_demos": len(train_demos["rgb"]),
-            "val_demos": len(val_demos["rgb"]), "dagger": aggregation.stats if aggregation else [],
+            "val_demos": len(val_demos["rgb"]), "command": command, "dagger_epochs": rounds,
+            "dagger": aggregation.stats if aggregation else [],
             **({"command_head": command_head} if command_head else {})}
 
 
