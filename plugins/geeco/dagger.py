@@ -48,7 +48,7 @@ def parse_epochs(text: str, epochs: int, skill: str, command: str = "network") -
     if str(text).strip() == "auto":
         if skill != "push" or command != "positions":
             return []
-        return sorted({max(2, -(-epochs * k // 6)) for k in AUTO_ROUNDS} & set(range(2, epochs + 1)))
+        return sorted({-(-epochs * k // 6) for k in AUTO_ROUNDS} & set(range(2, epochs + 1)))  # ceil(epochs k / 6)
     if not str(text).strip():
         return []
     try:

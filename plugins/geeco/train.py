@@ -234,11 +234,12 @@ class ValidationLoss:
         return -total / max(n, 1)
 
 
-def resolve_command(command: str, skill: str) -> str:
+def resolve_command(command: str, skill: str, classified: bool = False) -> str:
     """``train.command``: ``auto`` is positions for pushing (its end-to-end u_dEE pushed 14.5 % at the
-    small preset's scale, docs/geeco.md) and network for pick-and-place (the thesis)."""
+    small preset's scale, docs/geeco.md) and network for pick-and-place (the thesis), or whenever
+    u_dEE is ``classified`` (``train.dee_bins`` or ``train.dee_modes`` read the network's u_dEE)."""
     if command == "auto":
-        return "positions" if skill == "push" else "network"
+        return "positions" if skill == "push" and not classified else "network"
     return command
 
 
@@ -273,18 +274,14 @@ def train(ctx: Context) -> dict[str, Any]:
         raise BadInput(f"train.readout must be one of {', '.join(READOUTS)}, got {cfg.readout!r}")
     if cfg.command not in (*COMMANDS, "auto"):
         raise BadInput(f"train.command must be one of {', '.join(COMMANDS)}, auto, got {cfg.command!r}")
-    command = resolve_command(cfg.command, skill)
+    command = resolve_command(cfg.command, skill, classified=bool(cfg.dee_bins or cfg.dee_modes))
     if cfg.dee_modes and cfg.dee_bins:
         raise BadInput("train.dee_bins and train.dee_modes are two ways to read u_dEE: set one of them")
     if cfg.width <= 0 or cfg.lr <= 0 or cfg.aux_weight < 0 or cfg.val_episodes < 0 or cfg.command_epochs < 0:
         raise BadInput("train.width and train.lr must be > 0, train.aux_weight, train.val_episodes and "
                        "train.command_epochs >= 0")
     if command == "positions" and (cfg.dee_bins or cfg.dee_modes):
-        if cfg.command == "auto":  # the small preset's push controller: bins and modes ask for the network's u_dEE
-            command = "network"
-        else:
-            raise BadInput("train.command=positions regresses u_dEE from positions: not with train.dee_bins or "
-                           "train.dee_modes")
+        raise BadInput("train.command=positions regresses u_dEE from positions: not with train.dee_bins or train.dee_modes")
     rounds = parse_epochs(cfg.dagger_epochs, cfg.epochs, skill, command)
     if rounds and cfg.dagger_episodes < 1:
         raise BadInput(f"train.dagger_episodes must be >= 1, got {cfg.dagger_episodes}")
