@@ -226,11 +226,17 @@ def run_train(opts: Options) -> dict[str, Any]:
         opts = replace(opts, model=opts.model or trained)
     method, ctx = make_context(opts, base)
     data = ensure_dataset(method, ctx, opts.data or (Path(base["data"]) if base.get("data") else None))
-    scene = read_manifest(data, ctx.method).get("scene")
+    manifest = read_manifest(data, ctx.method)
+    scene, made_on = manifest.get("scene"), manifest.get("backend")
     if scene and scene != ctx.scene:  # a --data dataset says what scene the run is of
         if opts.scene:
             raise BadInput(f"--scene {opts.scene}, but the dataset {data} is of scene {scene}")
         ctx = ctx.with_(scene=scene)
+    if made_on and made_on != ctx.backend and resume_run is None:  # ... and the backend it trains on
+        if opts.backend:  # (a method's closed-loop validation runs on the training backend)
+            raise BadInput(f"--backend {ctx.backend}, but the dataset {data} was made on {made_on}: train on "
+                           f"{made_on}, then evaluate with --backend {ctx.backend}")
+        ctx = ctx.with_(backend=made_on)
     ctx = ctx.with_(data=data)
     t0 = time.perf_counter()
     if resume_run is not None:

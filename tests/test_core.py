@@ -395,3 +395,18 @@ def test_fit_in_bf16_channels_last_with_a_batch_transform_learns(tmp_path):
     assert resolve_precision("fp32", "cpu") == "fp32" and resolve_precision("auto", "cpu") in ("fp32", "bf16")
     with pytest.raises(BadInput, match="fp32, bf16"):
         resolve_precision("fp8", "cpu")
+
+
+def test_a_run_trains_on_the_backend_its_dataset_was_made_on(toy_plugins, tmp_path):
+    ds = tmp_path / "ds"
+    assert call("dataset", "toy", "--preset", "tiny", "--backend", "pybullet", "--out", str(ds))[0] == 0
+    code, out, err = call("train", "toy", "--preset", "tiny", "--data", str(ds), "--out", str(tmp_path / "r"), "--json")
+    assert code == 0, err
+    assert j(out)["backend"] == "pybullet"
+    assert json.loads((tmp_path / "r" / "run.json").read_text())["backend"] == "pybullet"
+    code, out, err = call("eval", "toy", "--run", str(tmp_path / "r"), "--json")  # evaluated where it was trained
+    assert code == 0 and j(out)["backend"] == "pybullet", err
+    code, _, err = call("train", "toy", "--preset", "tiny", "--data", str(ds), "--backend", "mujoco",
+                        "--out", str(tmp_path / "r2"))
+    assert code == 2 and "was made on pybullet" in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "r2").exists()
