@@ -41,8 +41,9 @@ def _complete_backends(incomplete: str) -> list[str]:
 # -- options shared by every verb (spelled the same everywhere) -----------------------------------
 Method = Annotated[str, typer.Argument(help="Method name (see `physint plugins`).", autocompletion=_complete_methods,
                                        show_default=False)]
-BackendOpt = Annotated[Optional[str], typer.Option("--backend", "-b", help="Simulator backend (default: the method's first).",
-                                                   autocompletion=_complete_backends)]
+BackendOpt = Annotated[Optional[str], typer.Option(
+    "--backend", "-b", help="Simulator backend (default: the one the --run or --data was made on, else the method's first).",
+    autocompletion=_complete_backends)]
 SceneOpt = Annotated[Optional[str], typer.Option("--scene", help="Scene / scenario family (default: the method's first).")]
 PresetOpt = Annotated[Optional[str], typer.Option("--preset", "-p", help="tiny (seconds), small (CPU default), paper (thesis, GPU).")]
 ConfigOpt = Annotated[Optional[Path], typer.Option("--config", help="YAML file of config overrides.")]
