@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 from pathlib import Path
 
 import h5py
@@ -290,16 +291,14 @@ def test_ctrl_c_during_training_keeps_the_last_checkpoint_and_resumes(toy_plugin
     assert [json.loads(line)["step"] for line in (out / "metrics.jsonl").read_text().splitlines()] == [1, 2, 3, 4, 5]
 
 
-def test_training_stopped_mid_epoch_resumes_at_its_batch_and_ends_as_if_never_stopped(toy_plugins, monkeypatch,
-                                                                                      tmp_path):
-    """Within an epoch fit saves its place every CHECKPOINT_SECONDS (here after every batch): a training
-    stopped part-way through epoch 2 resumes at the batch it reached and ends with the very weights and
-    losses of one that ran through."""
+def _stop_in_epoch_2_and_resume(monkeypatch, tmp_path, stop, resumed_at: str) -> None:
+    """Train the toy 3 epochs of 8 batches straight through, and again calling ``stop()`` in the
+    fifth batch of epoch 2 (the interrupt must exit 130), resume that one: the log says where it
+    resumed and it ends with the very weights and losses of the run that went straight through."""
     import torch
 
     from physint_cli import training
 
-    monkeypatch.setattr(training, "CHECKPOINT_SECONDS", 0.0)
     args = ["train", "toy", "--preset", "tiny", "--set", "train.epochs=3", "--set", "train.batch_size=4"]  # 8 batches
     whole, cut = tmp_path / "whole", tmp_path / "cut"
     code, _, err = call(*args, "--out", str(whole))
@@ -309,19 +308,46 @@ def test_training_stopped_mid_epoch_resumes_at_its_batch_and_ends_as_if_never_st
     def stop_in_the_fifth_batch_of_epoch_2(batch, *rest, **kw):
         batches.append(1)
         if len(batches) == 8 + 5:
-            raise KeyboardInterrupt
+            stop()
         return original(batch, *rest, **kw)
 
     monkeypatch.setattr(training, "to_device", stop_in_the_fifth_batch_of_epoch_2)
     code, _, err = call(*args, "--out", str(cut))
     assert code == 130 and "rerun the same command to resume" in err
+    assert not list((cut / "checkpoints").glob(".*tmp*"))
     monkeypatch.setattr(training, "to_device", original)
     code, _, err = call("train", "toy", "--resume", "--run", str(cut), "--json")
     assert code == 0, err
-    assert "at epoch 1, 4 batches into epoch 2" in err
+    assert resumed_at in err
     ran, resumed = (torch.load(r / "checkpoints" / "last.pt", weights_only=False) for r in (whole, cut))
     assert all(torch.equal(ran["model"][k], resumed["model"][k]) for k in ran["model"])
     assert [h["train_loss"] for h in ran["history"]] == [h["train_loss"] for h in resumed["history"]]
+
+
+@pytest.mark.parametrize("checkpoint_seconds", [0.0, 300.0])
+def test_training_stopped_mid_epoch_resumes_at_its_batch_and_ends_as_if_never_stopped(toy_plugins, monkeypatch,
+                                                                                      tmp_path, checkpoint_seconds):
+    """An exception in a batch (Ctrl-C raised there): fit has saved the batches before it, both when
+    it saves its place every CHECKPOINT_SECONDS (here after every batch) and when the last periodic
+    save is long ago (the default 5 min: it saves as it stops)."""
+    from physint_cli import training
+
+    def ctrl_c():
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(training, "CHECKPOINT_SECONDS", checkpoint_seconds)
+    _stop_in_epoch_2_and_resume(monkeypatch, tmp_path, ctrl_c, "at epoch 1, 4 batches into epoch 2")
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_a_signal_during_an_optimiser_step_stops_training_after_it_and_loses_nothing(toy_plugins, monkeypatch,
+                                                                                     tmp_path, signum):
+    """Ctrl-C or a SIGTERM (kill, a cluster's preemption) arriving mid-step lets the step finish,
+    saves it and exits 130; the resumed run ends as if never stopped."""
+    handlers = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
+    _stop_in_epoch_2_and_resume(monkeypatch, tmp_path, lambda: os.kill(os.getpid(), signum),
+                                "at epoch 1, 5 batches into epoch 2")
+    assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == handlers  # put back
 
 
 def test_the_seed_sets_the_initial_weights(toy_plugins, tmp_path):
