@@ -135,3 +135,27 @@ def test_oracle_and_random_deploy_without_a_trained_run():
     assert code == 2 and "--run" in err and "Traceback" not in err
     code, _, err = call("eval", "stability", "--preset", "tiny")
     assert code == 2 and "no trained stability run" in err
+
+
+def test_the_paper_preset_trains_inception_v4_with_rmsprop_at_224_px_and_evaluates(tmp_path):
+    """The thesis's configuration (Inception-v4, 224 px, RMSProp) end to end at toy scale on a CPU:
+    the GPU preset is the same code, so a broken key or shape shows here, not on a lent GPU."""
+    import torch
+
+    toy = ["--preset", "paper", "--set", "data.scenarios=24", "--set", "data.per_shard=24", "--set", "data.cameras=1"]
+    code, _, err = call("dataset", "stability", *toy, "--out", str(tmp_path / "ds"))
+    assert code == 0, err
+    code, stdout, err = call("train", "stability", "--preset", "paper", "--data", str(tmp_path / "ds"),
+                             "--set", "train.epochs=1", "--set", "train.num_workers=0", "--set", "train.batch_size=4",
+                             "--out", str(tmp_path / "run"), "--json")
+    assert code == 0, err
+    assert json.loads(stdout)["metrics"]["model"] == "inception-v4"
+    state = torch.load(tmp_path / "run" / "checkpoints" / "best.pt", weights_only=False)
+    assert state["meta"]["model"] == "inception-v4"
+    assert "square_avg" in next(iter(state["optimizer"]["state"].values()))  # RMSProp's running average
+    assert ShardedDataset(tmp_path / "ds", "train")[0]["image"].shape == (224, 224, 3)
+    code, stdout, err = call("eval", "stability", "--run", str(tmp_path / "run"), *toy,
+                             "--set", "eval.occlusion_images=0", "--json")  # occlusion: 3 min an image on a CPU
+    assert code == 0, err
+    metrics = json.loads(stdout)["metrics"]
+    assert metrics["images"] > 0 and 0 <= metrics["accuracy"] <= 1
