@@ -9,6 +9,8 @@ from __future__ import annotations
 import contextlib
 import os
 import random
+import signal
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -238,9 +240,6 @@ class _HeldInterrupts:
 
     @contextlib.contextmanager
     def held(self):
-        import signal
-        import threading
-
         if threading.current_thread() is not threading.main_thread():
             yield
             return
