@@ -226,12 +226,23 @@ class EpochOrder:
 
 
 class _HeldInterrupts:
-    """Ctrl-C (SIGINT) and SIGTERM arriving inside ``held()`` (one optimiser step, which cannot be
-    saved half-applied) take effect when it ends; anywhere else they interrupt at once. Outside
-    the main thread (where Python handles signals) it does nothing."""
+    """Within ``with``, Ctrl-C (SIGINT) and SIGTERM arriving inside ``held()`` (one optimiser step,
+    which cannot be saved half-applied) take effect when it ends; anywhere else they interrupt at
+    once. Outside the main thread (where Python handles signals) it does nothing."""
 
     def __init__(self):
-        self.holding, self.pending = False, False
+        self.holding, self.pending, self.previous = False, False, {}
+
+    def __enter__(self) -> "_HeldInterrupts":
+        if threading.current_thread() is threading.main_thread():
+            # only signals that would raise KeyboardInterrupt now (not ones ignored, as in a background job)
+            self.previous = {s: signal.signal(s, self._handle) for s in (signal.SIGINT, signal.SIGTERM)
+                             if signal.getsignal(s) is signal.default_int_handler}
+        return self
+
+    def __exit__(self, *exc) -> None:
+        for s, handler in self.previous.items():
+            signal.signal(s, handler)
 
     def _handle(self, signum, frame) -> None:
         if not self.holding:
@@ -240,19 +251,11 @@ class _HeldInterrupts:
 
     @contextlib.contextmanager
     def held(self):
-        if threading.current_thread() is not threading.main_thread():
-            yield
-            return
-        # only signals that would raise KeyboardInterrupt now (not ones ignored, as in a background job)
-        previous = {s: signal.signal(s, self._handle) for s in (signal.SIGINT, signal.SIGTERM)
-                    if signal.getsignal(s) is signal.default_int_handler}
         self.holding, self.pending = True, False
         try:
             yield
         finally:
             self.holding = False
-            for s, handler in previous.items():
-                signal.signal(s, handler)
         if self.pending:
             raise KeyboardInterrupt
 
@@ -333,7 +336,6 @@ def fit(model, train_set, val_set, *, run, epochs: int, batch_size: int, lr: flo
                     scheduler=scheduler.state_dict() if scheduler is not None else None, history=history,
                     torch_rng=torch.get_rng_state(), meta=meta or {}, **progress)
 
-    interrupts = _HeldInterrupts()
     for epoch in range(start_epoch, epochs):
         skip = start_batch if epoch == start_epoch else 0
         order.set_epoch(epoch, skip * batch_size)
@@ -343,22 +345,23 @@ def fit(model, train_set, val_set, *, run, epochs: int, batch_size: int, lr: flo
         total, count = partial if skip else (0.0, 0)
         saved, done, saved_done = time.monotonic(), skip, skip  # batches of this epoch trained on / in `last`
         try:
-            for i, batch in enumerate(loader, start=skip + 1):
-                with interrupts.held():
-                    if batch_transform is not None:
-                        batch = batch_transform(batch)
-                    batch = to_device(batch, device, channels_last)
-                    with autocast(device, precision):
-                        loss = loss_fn(model, batch)
-                    opt.zero_grad(set_to_none=True)
-                    loss.backward()
-                    opt.step()
-                    total += float(loss.detach()) * len(next(iter(batch.values())))
-                    count += len(next(iter(batch.values())))
-                    done = i
-                if d.is_main and time.monotonic() - saved >= CHECKPOINT_SECONDS:  # part of an epoch: i batches done
-                    save_checkpoint(last, **state_now(epoch=epoch, batch=i, partial=(total, count)))
-                    saved, saved_done = time.monotonic(), i
+            with _HeldInterrupts() as interrupts:  # handlers set once an epoch, not every batch
+                for i, batch in enumerate(loader, start=skip + 1):
+                    with interrupts.held():
+                        if batch_transform is not None:
+                            batch = batch_transform(batch)
+                        batch = to_device(batch, device, channels_last)
+                        with autocast(device, precision):
+                            loss = loss_fn(model, batch)
+                        opt.zero_grad(set_to_none=True)
+                        loss.backward()
+                        opt.step()
+                        total += float(loss.detach()) * len(next(iter(batch.values())))
+                        count += len(next(iter(batch.values())))
+                        done = i
+                    if d.is_main and time.monotonic() - saved >= CHECKPOINT_SECONDS:  # part of an epoch: i batches done
+                        save_checkpoint(last, **state_now(epoch=epoch, batch=i, partial=(total, count)))
+                        saved, saved_done = time.monotonic(), i
         except KeyboardInterrupt:  # Ctrl-C or SIGTERM: keep every finished batch, then stop
             if d.is_main and done > saved_done:
                 save_checkpoint(last, **state_now(epoch=epoch, batch=done, partial=(total, count)))
