@@ -36,6 +36,7 @@ def test_demonstrations_are_balanced_successful_and_end_on_their_target_image(ti
         assert r["rgb"].shape == (100, 32, 32, 3) and r["joints"].shape == (100, 7)
         assert np.abs(r["dee"]).max() <= SPEED + 1e-6 and set(np.unique(r["grip"])) <= {0, 1, 2}
         ep = S.Episode("goal2cube2", "push", r["layout"], tuple(int(v) for v in r["task"]))
+        assert int(r["backdrop"]) == -1  # the thesis's plain background
         # the object moved from its start onto its target; the hand is parked at the end
         assert np.linalg.norm(r["obj"][0, :2] - ep.xy(ep.object)) < 1e-3
         assert np.all(np.abs(r["obj"][-1, :2] - ep.xy(ep.target)) <= S.PAD / 2)
@@ -80,11 +81,41 @@ def test_a_goal_in_words_and_the_target_image_it_made_give_the_same_start(tiny_p
     (["dataset", "geeco", "--set", "data.skill=fly"], "data.skill must be one of push, pickplace"),
     (["dataset", "geeco", "--set", "data.demos=2"], "data.demos must be >= 4"),
     (["dataset", "geeco", "--set", "data.action_noise=0.5"], "data.action_noise must be in [0, 0.02]"),
+    (["dataset", "geeco", "--set", "data.backgrounds=video"], "data.backgrounds must be one of plain, random"),
     (["train", "geeco", "--model", "geeco-x"], "geeco-x"),
 ])
 def test_bad_input_exits_2_with_one_line(args, message):
     code, _, err = call(*args, "--preset", "tiny")
     assert code == 2 and message in err and len(err.strip().splitlines()) == 1, err
+
+
+def test_random_backgrounds_are_recorded_with_their_seeds_and_replayed_wherever_episodes_are_rebuilt(tmp_path):
+    """data.backgrounds=random: each demonstration has its own background video, and training's
+    episodes (validation, DAgger) and evaluation's test episodes rebuild it from the stored seed,
+    so the frames a controller sees match its target image's background."""
+    import physint_backends as pb
+    from types import SimpleNamespace
+
+    from physint_plugins.geeco.control import observe
+    from physint_plugins.geeco.evaluate import episode_of, plan_episodes
+    from physint_plugins.geeco.train import episodes_of, load_split
+
+    data = tmp_path / "random"
+    code, _, err = call("dataset", "geeco", "--preset", "tiny", "--set", "data.demos=4", "--set",
+                        "data.backgrounds=random", "--out", str(data))
+    assert code == 0, err
+    demos = load_split(data, "train")
+    episodes = episodes_of(demos, "goal2cube2", "push")
+    assert len({ep.backdrop for ep in episodes}) == len(episodes) and all(ep.backdrop >= 0 for ep in episodes)
+    ctx = SimpleNamespace(scene="goal2cube2", data=data, backend="mujoco", seed=0)
+    spec = plan_episodes(ctx, {"skill": "push", "scene": "goal2cube2", "backend": "mujoco"}, 1)[0]
+    assert episode_of(spec, "goal2cube2", "push").backdrop == int(load_split(data, "test")["backdrop"][0]) >= 0
+    ep = episodes[0]
+    with pb.make("mujoco", S.build_scene(ep, 32)) as sim:
+        replayed = observe(sim, 0, S.background_video(ep))
+        plain = observe(sim, 0)
+    assert (replayed == demos["rgb"][0, 0]).all()  # the first frame, background and all
+    assert (replayed != plain).any(axis=-1).mean() > 0.03  # the background is not the plain one
 
 
 def test_bad_targets_exit_2(tiny_pipeline, tmp_path):

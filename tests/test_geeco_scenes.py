@@ -82,6 +82,21 @@ def test_every_scene_builds_and_shows_its_objects(scene):
         assert changed.any() and not changed[frame.segmentation != -1].any()
 
 
+def test_random_background_videos_are_the_same_for_a_seed_differ_between_seeds_and_some_move():
+    videos = [S.random_backdrop(seed) for seed in range(20)]
+    first = [v(0, 32) for v in videos]
+    assert all(f.shape == (32, 32, 3) and f.dtype == np.uint8 for f in first)
+    assert (S.random_backdrop(7)(5, 32) == videos[7](5, 32)).all()  # a seed replays its video
+    assert len({f.tobytes() for f in first}) == 20  # every seed its own
+    moving = [not (v(0, 32) == v(10, 32)).all() for v in videos]
+    assert any(moving) and not all(moving)  # some drift, some stand still
+    ep = S.sample_episode("goal2cube2", "push", (0, 0), np.random.default_rng(0))
+    assert S.background_video(ep) is None  # the thesis's plain background
+    ep.backdrop = 7
+    assert (S.background_video(ep)(3, 16) == videos[7](3, 16)).all()
+    assert S.background_video(S.sample_episode("prisma", "push", (0, 0), np.random.default_rng(0))) is S.prisma_frame
+
+
 # -- the scripted expert ---------------------------------------------------------------------------
 
 def run_expert(sim, ep: S.Episode) -> tuple[bool, bool]:

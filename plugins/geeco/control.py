@@ -122,10 +122,13 @@ class Policy:
             return self.model.command_from_positions(*history, out["goal"].float())
 
 
-def observe(sim, step: int, prisma: bool) -> np.ndarray:
-    """The camera frame the controller sees (BG:PRISMA: with the background video)."""
-    frame = sim.render("front", segmentation=prisma)
-    return S.replace_background(frame.rgb, frame.segmentation, step) if prisma else frame.rgb
+def observe(sim, step: int, video=None) -> np.ndarray:
+    """The camera frame at ``step``, its background replaced by ``video`` if one is given
+    (``S.background_video``: BG:PRISMA's rainbow, or a demonstration's random background)."""
+    if video is None:
+        return sim.render("front").rgb
+    frame = sim.render("front", segmentation=True)
+    return S.replace_background(frame.rgb, frame.segmentation, step, video)
 
 
 def expert_target(sim, ep: S.Episode, resolution: int, horizon: int = 100) -> np.ndarray | None:
@@ -136,7 +139,7 @@ def expert_target(sim, ep: S.Episode, resolution: int, horizon: int = 100) -> np
         sim.robot.act(expert.act(sim))
     if not (on_target(ep, sim) and expert.done):
         return None
-    return observe(sim, horizon, ep.scene == "prisma")
+    return observe(sim, horizon, S.background_video(ep))
 
 
 def run_episode(sim, ep: S.Episode, policy: Policy, target_rgb: np.ndarray | None, steps: int, resolution: int,
@@ -151,8 +154,9 @@ def run_episode(sim, ep: S.Episode, policy: Policy, target_rgb: np.ndarray | Non
     gripper_closed = False
     t0 = time.perf_counter()
     step = 0
+    video = S.background_video(ep)
     for step in range(steps):
-        rgb = observe(sim, step, ep.scene == "prisma")
+        rgb = observe(sim, step, video)
         state = sim.robot.state()
         truth = (sim.get_pose(ep.object)[0], ep.xy(ep.target)) if true_positions else None
         action = policy.act(rgb, np.asarray(state.joints, dtype=np.float32), np.asarray(state.ee_pos), truth)

@@ -74,8 +74,9 @@ def rollout(sim, ep: S.Episode, policy: Policy, target: np.ndarray, horizon: int
     policy.reset(target)
     expert = Expert(ep)
     out = empty_episode(horizon, target.shape[0])
+    video = S.background_video(ep)
     for t in range(horizon):
-        state, rgb = sim.robot.state(), observe(sim, t, False)
+        state, rgb = sim.robot.state(), observe(sim, t, video)
         label = expert.act(sim)
         record_step(out, t, sim, ep, state, rgb, label)
         action = policy.act(rgb, np.asarray(state.joints, dtype=np.float32), np.asarray(state.ee_pos))

@@ -6,7 +6,8 @@ H = 100 steps at 25 Hz and keeps, per step t: the camera frame I_t, the 7 joint 
 commanded displacement u_dEE and gripper command u_GRP, and the positions of the hand q_EE and
 of the object to move q_OBJ. Only demonstrations that succeed (the object rests on its target)
 with the hand parked before the end are kept: their last frame is the target image I_T. The
-start state (layout, task, seed) is saved, so evaluation replays the test split's start states.
+start state (layout, task, seed, and the seed of the background video with
+``data.backgrounds=random``, else -1) is saved, so evaluation replays the test split's start states.
 """
 
 from __future__ import annotations
@@ -19,11 +20,13 @@ from physint_cli.errors import BadInput
 from physint_cli.method import Context, Unit, split_units
 
 from . import scenes as S
+from .control import observe
 from .expert import Expert, on_target
 
 SPLITS = {"train": 2, "val": 1, "test": 1}  # 2:1:1
 GRIP_CLASS = {-1: 0, 0: 1, 1: 2}  # gripper command -> class id (open, no-op, close)
 SETTLE_STEPS = 4  # the hand must be parked this many steps before the demonstration ends
+BACKGROUNDS = ("plain", "random")
 
 
 def split_counts(total: int) -> dict[str, int]:
@@ -45,6 +48,8 @@ def check(ctx: Context) -> None:
         raise BadInput(f"data.resolution must be >= 16, got {cfg.resolution}")
     if not 0 <= cfg.action_noise <= 0.02:
         raise BadInput(f"data.action_noise must be in [0, 0.02] m, got {cfg.action_noise}")
+    if cfg.backgrounds not in BACKGROUNDS:
+        raise BadInput(f"data.backgrounds must be one of {', '.join(BACKGROUNDS)}, got {cfg.backgrounds!r}")
     if cfg.horizon < 60:
         raise BadInput(f"data.horizon must be >= 60 steps (the expert needs ~60), got {cfg.horizon}")
 
@@ -58,12 +63,13 @@ def record(sim, ep: S.Episode, horizon: int, noise: float = 0.0, rng: np.random.
            ) -> tuple[dict[str, np.ndarray], bool]:
     """Run the expert from ``ep``'s start state for ``horizon`` steps on a live simulation; with
     ``noise`` > 0 the executed displacements are perturbed (``Expert.perturb``), the recorded
-    commands are the expert's own."""
+    commands are the expert's own. The frames show ``ep``'s background video, if it has one."""
     expert = Expert(ep)
     out = empty_episode(horizon, ep_resolution(sim))
+    video = S.background_video(ep)
     done_at = None
     for t in range(horizon):
-        state, rgb = sim.robot.state(), sim.render("front").rgb
+        state, rgb = sim.robot.state(), observe(sim, t, video)
         action = expert.act(sim)
         record_step(out, t, sim, ep, state, rgb, action)
         if noise > 0:
@@ -107,6 +113,8 @@ def demonstrations(ctx: Context, unit: Unit, sim=None):
             rng = np.random.default_rng([unit.seed, k])
             for attempt in range(1, cfg.max_attempts + 1):
                 ep = S.sample_episode(ctx.scene, cfg.skill, task, rng)
+                if cfg.backgrounds == "random":
+                    ep.backdrop = int(rng.integers(2**31))
                 scene = S.build_scene(ep, cfg.resolution)
                 if sim is None:
                     sim = ctx.make_sim(scene)
@@ -131,7 +139,7 @@ def generate(ctx: Context, unit: Unit) -> tuple[dict[str, np.ndarray], dict[str,
     for ep, arrays, tries in demonstrations(ctx, unit):
         attempts += tries
         arrays = dict(arrays, layout=ep.layout.astype(np.float32), task=np.asarray(ep.task, np.int16),
-                      seed=np.int64(ep.seed))
+                      seed=np.int64(ep.seed), backdrop=np.int64(ep.backdrop))
         for key, value in arrays.items():
             fields.setdefault(key, []).append(value)
     out = {k: np.stack(v) for k, v in fields.items()}

@@ -45,11 +45,14 @@ def plan_episodes(ctx: Context, meta: dict[str, Any], count: int) -> list[dict[s
 
         if ctx.data is None:
             raise BadInput("this run's dataset is not known: pass --data DATASET (its test split holds the start states)")
-        test = ShardedDataset(ctx.data, "test", ["layout", "task", "seed"], method="geeco")
+        from .train import with_optional
+
+        test = ShardedDataset(ctx.data, "test", with_optional(ctx.data, ["layout", "task", "seed"]), method="geeco")
         n = min(count, len(test))
         stored = ctx.backend == meta["backend"]
         return [{"index": i, "layout": test[i]["layout"].tolist(), "task": [int(v) for v in test[i]["task"]],
-                 "seed": int(test[i]["seed"]), "stored_target": stored} for i in range(n)]
+                 "seed": int(test[i]["seed"]), "backdrop": int(test[i].get("backdrop", -1)), "stored_target": stored}
+                for i in range(n)]
     if S.OBJECTS.get(ctx.scene) is None:
         raise BadInput(f"unknown scene {ctx.scene!r}")
     tasks = S.tasks(ctx.scene)
@@ -63,7 +66,8 @@ def plan_episodes(ctx: Context, meta: dict[str, Any], count: int) -> list[dict[s
 
 
 def episode_of(spec: dict[str, Any], scene: str, skill: str) -> S.Episode:
-    ep = S.Episode(scene, skill, np.asarray(spec["layout"], dtype=np.float32), tuple(spec["task"]), spec["seed"])
+    ep = S.Episode(scene, skill, np.asarray(spec["layout"], dtype=np.float32), tuple(spec["task"]), spec["seed"],
+                   backdrop=spec.get("backdrop", -1))
     if scene == "clutter":  # the distractors come from the episode's own seed
         ep.clutter = S.sample_clutter(ep, np.random.default_rng(spec["seed"]))
     return ep

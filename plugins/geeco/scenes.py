@@ -22,6 +22,7 @@ from __future__ import annotations
 import colorsys
 import math
 from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
 
@@ -88,6 +89,7 @@ class Episode:
     task: tuple[int, int]  # (object index, target index)
     seed: int = 0  # draws what the layout does not hold (clutter objects)
     clutter: list[tuple[str, float, float, float, int]] = field(default_factory=list)  # (shape, x, y, size, colour)
+    backdrop: int = -1  # >= 0: the seed of a random background video (data.backgrounds=random); -1: the scene's own
 
     @property
     def object(self) -> str:
@@ -267,12 +269,63 @@ def prisma_frame(step: int, size: int) -> np.ndarray:
     return (rgb * 255).astype(np.uint8)
 
 
-def replace_background(rgb: np.ndarray, segmentation: np.ndarray, step: int) -> np.ndarray:
-    """BG:PRISMA: every pixel showing the background (not the robot, the table or an object) becomes video."""
+def replace_background(rgb: np.ndarray, segmentation: np.ndarray, step: int,
+                       video: Callable[[int, int], np.ndarray] = prisma_frame) -> np.ndarray:
+    """Every pixel showing the background (not the robot, the table or an object) becomes frame
+    ``step`` of ``video`` (BG:PRISMA: the rainbow)."""
     out = rgb.copy()
     mask = segmentation == -1
-    out[mask] = prisma_frame(step, rgb.shape[0])[mask]
+    out[mask] = video(step, rgb.shape[0])[mask]
     return out
+
+
+# -- random background videos (data.backgrounds=random; domain randomisation, not in the thesis) ---
+
+def random_backdrop(seed: int) -> Callable[[int, int], np.ndarray]:
+    """A random moving background, the same for the same ``seed``: ``video(step, size)`` is its
+    frame at ``step``. Two families, drawn evenly: a smooth field of random colours (a 2..6-cell
+    periodic grid, interpolated) and bands of 2..4 random colours at a random angle and width;
+    half the videos stand still, the others drift across the image at up to half of it per second
+    (25 steps)."""
+    rng = np.random.default_rng(seed)
+    speed = rng.uniform(0.0, 0.02) * rng.integers(0, 2)  # image widths per step
+    heading = rng.uniform(0, 2 * math.pi)
+    drift = speed * np.array([math.cos(heading), math.sin(heading)])
+    if rng.random() < 0.5:
+        cells = int(rng.integers(2, 7))
+        grid = rng.uniform(0, 1, (cells, cells, 3))
+
+        def colours(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+            # bilinear interpolation on the periodic grid (wraps around, so the field can drift forever)
+            gx, gy = (x * cells) % cells, (y * cells) % cells
+            x0, y0 = np.floor(gx).astype(int), np.floor(gy).astype(int)
+            fx, fy = (gx - x0)[..., None], (gy - y0)[..., None]
+            x1, y1 = (x0 + 1) % cells, (y0 + 1) % cells
+            return ((1 - fy) * ((1 - fx) * grid[y0, x0] + fx * grid[y0, x1])
+                    + fy * ((1 - fx) * grid[y1, x0] + fx * grid[y1, x1]))
+    else:
+        palette = rng.uniform(0, 1, (int(rng.integers(2, 5)), 3))
+        angle, width = rng.uniform(0, math.pi), rng.uniform(0.05, 0.3)
+
+        def colours(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+            along = x * math.cos(angle) + y * math.sin(angle)
+            return palette[np.floor(along / width).astype(int) % len(palette)]
+
+    def video(step: int, size: int) -> np.ndarray:
+        y, x = np.mgrid[0:size, 0:size] / size
+        return (colours(x - drift[0] * step, y - drift[1] * step) * 255).astype(np.uint8)
+
+    return video
+
+
+def background_video(ep: Episode) -> Callable[[int, int], np.ndarray] | None:
+    """What replaces ``ep``'s background: the rainbow in BG:PRISMA, the episode's own random video
+    (``ep.backdrop``), or nothing (the scene's plain background)."""
+    if ep.scene == "prisma":
+        return prisma_frame
+    if ep.backdrop >= 0:
+        return random_backdrop(ep.backdrop)
+    return None
 
 
 # -- goals in words ------------------------------------------------------------------------------

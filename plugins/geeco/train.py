@@ -25,6 +25,7 @@ from .model import BUFFER, COMMANDS, READOUTS
 
 SCHEDULES = ("cosine", "constant")
 FIELDS = ["rgb", "joints", "ee", "obj", "dee", "grip", "layout", "task", "seed"]
+OPTIONAL_FIELDS = ["backdrop"]  # not in datasets recorded before data.backgrounds
 
 
 def build_model(name: str, image_size: int, width: float, norm: bool = False, min_side: int = 1,
@@ -40,10 +41,18 @@ def build_model(name: str, image_size: int, width: float, norm: bool = False, mi
 
 
 def load_split(root: Path, split: str) -> dict[str, np.ndarray]:
-    """A whole split of demonstrations in memory (small: ~1.2 MB per demonstration at 64 px)."""
+    """A whole split of demonstrations in memory (small: ~1.2 MB per demonstration at 64 px), with
+    the seeds of their background videos where the dataset has them."""
     from physint_cli.datasets import ShardedDataset
 
-    return ShardedDataset(root, split, FIELDS, method="geeco", in_memory=True).arrays
+    return ShardedDataset(root, split, with_optional(root, FIELDS), method="geeco", in_memory=True).arrays
+
+
+def with_optional(root: Path, fields: list[str]) -> list[str]:
+    """``fields`` and those of ``OPTIONAL_FIELDS`` that the dataset at ``root`` holds."""
+    from physint_cli.datasets import read_manifest
+
+    return fields + [f for f in OPTIONAL_FIELDS if f in read_manifest(Path(root), "geeco")["schema"]]
 
 
 class Chunks:
@@ -174,7 +183,9 @@ def to_float_frames(batch: dict[str, Any]) -> dict[str, Any]:
 
 
 def episodes_of(demos: dict[str, np.ndarray], scene: str, skill: str) -> list[S.Episode]:
-    return [S.Episode(scene, skill, demos["layout"][i], tuple(int(v) for v in demos["task"][i]), int(demos["seed"][i]))
+    backdrops = demos.get("backdrop", np.full(len(demos["layout"]), -1))
+    return [S.Episode(scene, skill, demos["layout"][i], tuple(int(v) for v in demos["task"][i]), int(demos["seed"][i]),
+                      backdrop=int(backdrops[i]))
             for i in range(len(demos["layout"]))]
 
 
