@@ -50,9 +50,9 @@ def plan_episodes(ctx: Context, meta: dict[str, Any], count: int) -> list[dict[s
         test = ShardedDataset(ctx.data, "test", with_optional(ctx.data, ["layout", "task", "seed"]), method="geeco")
         n = min(count, len(test))
         stored = ctx.backend == meta["backend"]
-        return [{"index": i, "layout": test[i]["layout"].tolist(), "task": [int(v) for v in test[i]["task"]],
-                 "seed": int(test[i]["seed"]), "backdrop": int(test[i].get("backdrop", -1)), "stored_target": stored}
-                for i in range(n)]
+        records = [test[i] for i in range(n)]
+        return [{"index": i, "layout": r["layout"].tolist(), "task": [int(v) for v in r["task"]], "seed": int(r["seed"]),
+                 "backdrop": int(r.get("backdrop", -1)), "stored_target": stored} for i, r in enumerate(records)]
     if S.OBJECTS.get(ctx.scene) is None:
         raise BadInput(f"unknown scene {ctx.scene!r}")
     tasks = S.tasks(ctx.scene)
