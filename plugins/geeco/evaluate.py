@@ -66,11 +66,7 @@ def plan_episodes(ctx: Context, meta: dict[str, Any], count: int) -> list[dict[s
 
 
 def episode_of(spec: dict[str, Any], scene: str, skill: str) -> S.Episode:
-    ep = S.Episode(scene, skill, np.asarray(spec["layout"], dtype=np.float32), tuple(spec["task"]), spec["seed"],
-                   backdrop=spec.get("backdrop", -1))
-    if scene == "clutter":  # the distractors come from the episode's own seed
-        ep.clutter = S.sample_clutter(ep, np.random.default_rng(spec["seed"]))
-    return ep
+    return S.Episode.rebuild(scene, skill, spec["layout"], spec["task"], spec["seed"], spec.get("backdrop", -1))
 
 
 def eval_unit(ctx: Context, unit: Unit) -> list[dict[str, Any]]:

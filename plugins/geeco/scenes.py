@@ -105,6 +105,16 @@ class Episode:
     def goal_text(self) -> str:
         return f"{describe(self.object)} onto {describe(self.target)}"
 
+    @classmethod
+    def rebuild(cls, scene: str, skill: str, layout, task, seed: int, backdrop: int = -1) -> "Episode":
+        """The episode a stored start state (a dataset record or an evaluation spec) describes;
+        FG:CLUTTER's distractors come from its seed."""
+        ep = cls(scene, skill, np.asarray(layout, dtype=np.float32), tuple(int(v) for v in task), int(seed),
+                 backdrop=int(backdrop))
+        if scene == "clutter":
+            ep.clutter = sample_clutter(ep, np.random.default_rng(ep.seed))
+        return ep
+
 
 # -- sampling start states -------------------------------------------------------------------------
 
@@ -311,9 +321,17 @@ def random_backdrop(seed: int) -> Callable[[int, int], np.ndarray]:
             along = x * math.cos(angle) + y * math.sin(angle)
             return palette[np.floor(along / width).astype(int) % len(palette)]
 
+    still: dict[int, np.ndarray] = {}  # a still video's one frame per size, made once (read-only)
+
     def video(step: int, size: int) -> np.ndarray:
+        if size in still:
+            return still[size]
         y, x = np.mgrid[0:size, 0:size] / size
-        return (colours(x - drift[0] * step, y - drift[1] * step) * 255).astype(np.uint8)
+        frame = (colours(x - drift[0] * step, y - drift[1] * step) * 255).astype(np.uint8)
+        if not speed:
+            frame.flags.writeable = False
+            still[size] = frame
+        return frame
 
     return video
 

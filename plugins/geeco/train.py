@@ -184,8 +184,7 @@ def to_float_frames(batch: dict[str, Any]) -> dict[str, Any]:
 
 def episodes_of(demos: dict[str, np.ndarray], scene: str, skill: str) -> list[S.Episode]:
     backdrops = demos.get("backdrop", np.full(len(demos["layout"]), -1))
-    return [S.Episode(scene, skill, demos["layout"][i], tuple(int(v) for v in demos["task"][i]), int(demos["seed"][i]),
-                      backdrop=int(backdrops[i]))
+    return [S.Episode.rebuild(scene, skill, demos["layout"][i], demos["task"][i], demos["seed"][i], backdrops[i])
             for i in range(len(demos["layout"]))]
 
 
