@@ -273,7 +273,7 @@ def fit(model, train_set, val_set, *, run, epochs: int, batch_size: int, lr: flo
         meta: dict[str, Any] | None = None, log: Callable[[str], None] = print,
         make_optimizer: Callable[[Any], tuple[Any, Any]] | None = None, precision: str = "fp32",
         channels_last: bool = False, batch_transform: Callable[[dict[str, Any]], dict[str, Any]] | None = None,
-        before_epoch: Callable[[int, Any], None] | None = None) -> FitResult:
+        before_epoch: Callable[[int, Any], None] | None = None, progress: bool = False) -> FitResult:
     """Supervised training with checkpoints every epoch (and every ``CHECKPOINT_SECONDS`` within
     one), resume from where it stopped, and DDP.
 
@@ -288,14 +288,20 @@ def fit(model, train_set, val_set, *, run, epochs: int, batch_size: int, lr: flo
     the scheduler is stepped once per epoch.
     ``before_epoch(epoch, model)`` runs before each epoch (0-based; also the first one after a
     resume) and may grow ``train_set`` (single process only: a distributed sampler's length is fixed).
+    ``progress`` shows a bar over each epoch's batches on stderr (a terminal only; logs stay clean).
+    Each epoch's log line and history point carry its wall time, and the line an estimate of the
+    time left (the mean epoch of this process times the epochs to go).
     """
     import torch
     from torch.utils.data import DataLoader, DistributedSampler
 
     d = init_distributed(device)
     seed_everything(seed + d.rank)
-    precision = resolve_precision(precision, device)
-    log(f"training on {device} in {precision}{', channels-last' if channels_last else ''}")
+    asked, precision = precision, resolve_precision(precision, device)
+    why = " (auto: this CPU has neither AMX nor AVX512-BF16 to multiply bf16 natively; training takes " \
+          "several times as long as on one that has)" if asked == "auto" and precision == "fp32" and \
+        not device.startswith("cuda") else ""
+    log(f"training on {device} in {precision}{', channels-last' if channels_last else ''}{why}")
     model = model.to(device)
     if channels_last:
         model = model.to(memory_format=torch.channels_last)
@@ -336,7 +342,10 @@ def fit(model, train_set, val_set, *, run, epochs: int, batch_size: int, lr: flo
                     scheduler=scheduler.state_dict() if scheduler is not None else None, history=history,
                     torch_rng=torch.get_rng_state(), meta=meta or {}, **progress)
 
+    bar = _EpochBar(progress and d.is_main)
+    epoch_seconds: list[float] = []
     for epoch in range(start_epoch, epochs):
+        started = time.monotonic()
         skip = start_batch if epoch == start_epoch else 0
         order.set_epoch(epoch, skip * batch_size)
         if before_epoch is not None:
@@ -345,7 +354,7 @@ def fit(model, train_set, val_set, *, run, epochs: int, batch_size: int, lr: flo
         total, count = partial if skip else (0.0, 0)
         saved, done, saved_done = time.monotonic(), skip, skip  # batches of this epoch trained on / in `last`
         try:
-            with _HeldInterrupts() as interrupts:  # handlers set once an epoch, not every batch
+            with _HeldInterrupts() as interrupts, bar.epoch(f"epoch {epoch + 1}/{epochs}", len(loader), skip) as advance:
                 for i, batch in enumerate(loader, start=skip + 1):
                     with interrupts.held():
                         if batch_transform is not None:
@@ -359,6 +368,7 @@ def fit(model, train_set, val_set, *, run, epochs: int, batch_size: int, lr: flo
                         total += float(loss.detach()) * len(next(iter(batch.values())))
                         count += len(next(iter(batch.values())))
                         done = i
+                    advance()
                     if d.is_main and time.monotonic() - saved >= CHECKPOINT_SECONDS:  # part of an epoch: i batches done
                         save_checkpoint(last, **state_now(epoch=epoch, batch=i, partial=(total, count)))
                         saved, saved_done = time.monotonic(), i
@@ -371,7 +381,9 @@ def fit(model, train_set, val_set, *, run, epochs: int, batch_size: int, lr: flo
         model.eval()
         with torch.no_grad(), autocast(device, precision):
             val = float(metric_fn(unwrap(model), val_loader))
-        point = {"epoch": epoch + 1, "train_loss": total / max(count, 1), "val_metric": val}
+        epoch_seconds.append(time.monotonic() - started)
+        point = {"epoch": epoch + 1, "train_loss": total / max(count, 1), "val_metric": val,
+                 "seconds": round(epoch_seconds[-1], 1)}  # this process's wall time for the epoch
         history.append(point)
         improved = best is None or (val > best if higher_is_better else val < best)
         if improved:
@@ -382,9 +394,38 @@ def fit(model, train_set, val_set, *, run, epochs: int, batch_size: int, lr: flo
             if improved:
                 save_checkpoint(run.checkpoint("best"), **state)
             save_checkpoint(last, **state)
-            log(f"epoch {epoch + 1}/{epochs}: train loss {point['train_loss']:.4f}, val {val:.4f}")
+            left = float(np.mean(epoch_seconds)) * (epochs - epoch - 1)
+            log(f"epoch {epoch + 1}/{epochs}: train loss {point['train_loss']:.4f}, val {val:.4f} "
+                f"({_duration(epoch_seconds[-1])}{f'; about {_duration(left)} to go' if left else ''})")
         barrier(d)
     return FitResult(epochs=epochs, best_metric=float(best) if best is not None else float("nan"), history=history)
+
+
+def _duration(seconds: float) -> str:
+    return f"{seconds:.0f} s" if seconds < 90 else f"{seconds / 60:.1f} min"
+
+
+class _EpochBar:
+    """A transient rich bar over one epoch's batches on stderr, shown on a terminal only."""
+
+    def __init__(self, enabled: bool):
+        self.enabled = enabled
+
+    @contextlib.contextmanager
+    def epoch(self, description: str, total: int, done: int):
+        if not self.enabled:
+            yield lambda: None
+            return
+        from rich.console import Console
+        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, \
+            TimeRemainingColumn
+
+        console = Console(stderr=True)
+        with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                      TimeRemainingColumn(), console=console, transient=True,
+                      disable=not console.is_terminal) as bar:
+            task = bar.add_task(description, total=total, completed=done)
+            yield lambda: bar.advance(task)
 
 
 # -- registered models ------------------------------------------------------------------------

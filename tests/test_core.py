@@ -423,6 +423,38 @@ def test_fit_in_bf16_channels_last_with_a_batch_transform_learns(tmp_path):
         resolve_precision("fp8", "cpu")
 
 
+def test_each_epoch_reports_its_wall_time_and_the_time_left_and_auto_says_why_it_fell_back_to_fp32(
+        tmp_path, monkeypatch):
+    import torch
+
+    from physint_cli.runs import Run
+    from physint_cli.training import fit
+
+    monkeypatch.setattr(torch.cpu, "_is_amx_tile_supported", lambda: False, raising=False)
+    monkeypatch.setattr(torch.cpu, "_is_avx512_bf16_supported", lambda: False, raising=False)
+    xs = torch.randn(64, 2)
+    records = [{"x": x, "y": x.sum(0, keepdim=True)} for x in xs]
+    net = torch.nn.Linear(2, 1)
+    lines: list[str] = []
+    (tmp_path / "checkpoints").mkdir()
+    result = fit(net, records, records, run=Run(tmp_path), epochs=3, batch_size=16, lr=0.05,
+                 loss_fn=lambda m, b: torch.nn.functional.mse_loss(m(b["x"]), b["y"]),
+                 metric_fn=lambda m, loader: 0.0, precision="auto", progress=True, log=lines.append)
+    assert "in fp32 (auto: this CPU has neither AMX nor AVX512-BF16" in lines[0]
+    epochs = [line for line in lines if line.startswith("epoch ")]
+    assert len(epochs) == 3 and all(" s" in line.rsplit("(", 1)[1] for line in epochs)
+    assert "to go)" in epochs[0] and "to go" not in epochs[-1]  # nothing left after the last epoch
+    assert all(point["seconds"] >= 0 for point in result.history)
+    points = [json.loads(line) for line in (tmp_path / "metrics.jsonl").read_text().splitlines()]
+    assert [p["epoch"] for p in points] == [1, 2, 3] and all("seconds" in p for p in points)
+    lines.clear()
+    (tmp_path / "fp32" / "checkpoints").mkdir(parents=True)
+    fit(torch.nn.Linear(2, 1), records, records, run=Run(tmp_path / "fp32"), epochs=1, batch_size=16, lr=0.05,
+        loss_fn=lambda m, b: torch.nn.functional.mse_loss(m(b["x"]), b["y"]),
+        metric_fn=lambda m, loader: 0.0, precision="fp32", log=lines.append)
+    assert lines[0] == "training on cpu in fp32"  # asked for: nothing to explain
+
+
 def test_a_run_trains_on_the_backend_its_dataset_was_made_on(toy_plugins, tmp_path):
     ds = tmp_path / "ds"
     assert call("dataset", "toy", "--preset", "tiny", "--backend", "pybullet", "--out", str(ds))[0] == 0

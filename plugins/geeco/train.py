@@ -333,8 +333,9 @@ def train(ctx: Context) -> dict[str, Any]:
                  lr=cfg.lr, loss_fn=loss_fn, metric_fn=metric, make_optimizer=make_optimizer, device=ctx.device, seed=ctx.seed,
                  resume=bool(ctx.options.get("resume")), log=ctx.log, higher_is_better=True,
                  precision=cfg.precision, batch_transform=to_float_frames, before_epoch=aggregation,
-                 meta={"method": "geeco", "model": name, "kwargs": kwargs, "scene": scene, "skill": skill,
-                       "backend": manifest["backend"], "horizon": data_cfg["horizon"]})
+                 progress=not ctx.quiet, meta={"method": "geeco", "model": name, "kwargs": kwargs, "scene": scene,
+                                               "skill": skill, "backend": manifest["backend"],
+                                               "horizon": data_cfg["horizon"]})
     _plot_curves(Run(ctx.run), result.history, cfg.val_episodes > 0)
     return {"model": name, "skill": skill, "scene": scene, "epochs": result.epochs,
             "val_metric": result.best_metric, "val_metric_is": "closed-loop task progress" if cfg.val_episodes

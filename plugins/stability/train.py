@@ -115,6 +115,7 @@ def train(ctx: Context) -> dict[str, Any]:
                  seed=ctx.seed, resume=bool(ctx.options.get("resume")), log=ctx.log, higher_is_better=True,
                  num_workers=cfg.num_workers, make_optimizer=make_optimizer, precision=cfg.precision,
                  channels_last=True, batch_transform=BatchAugment(train_tf),
+                 progress=not ctx.quiet,
                  meta={"method": "stability", "model": name, "kwargs": kwargs, "scene": ctx.scene})
     _plot_curves(Run(ctx.run), result.history)
     return {"model": name, "epochs": result.epochs, "val_accuracy": result.best_metric,
