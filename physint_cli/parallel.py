@@ -18,12 +18,16 @@ from typing import Any, Callable
 from .errors import BadInput, RunFailure
 
 
-def progress_bar(quiet: bool = False):
+def progress_bar(quiet: bool = False, transient: bool = False):
+    """A rich bar on stderr. A transient one disappears when done and is shown on a terminal only; the
+    others also leave their final state in a log file."""
     from rich.console import Console
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
+    console = Console(stderr=True)
     return Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                    TimeRemainingColumn(), console=Console(stderr=True), transient=False, disable=quiet)
+                    TimeRemainingColumn(), console=console, transient=transient,
+                    disable=quiet or (transient and not console.is_terminal))
 
 
 _RAY_ADDRESS: str | None = None

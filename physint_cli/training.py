@@ -342,7 +342,6 @@ def fit(model, train_set, val_set, *, run, epochs: int, batch_size: int, lr: flo
                     scheduler=scheduler.state_dict() if scheduler is not None else None, history=history,
                     torch_rng=torch.get_rng_state(), meta=meta or {}, **progress)
 
-    bar = _EpochBar(progress and d.is_main)
     epoch_seconds: list[float] = []
     for epoch in range(start_epoch, epochs):
         started = time.monotonic()
@@ -354,7 +353,8 @@ def fit(model, train_set, val_set, *, run, epochs: int, batch_size: int, lr: flo
         total, count = partial if skip else (0.0, 0)
         saved, done, saved_done = time.monotonic(), skip, skip  # batches of this epoch trained on / in `last`
         try:
-            with _HeldInterrupts() as interrupts, bar.epoch(f"epoch {epoch + 1}/{epochs}", len(loader), skip) as advance:
+            with _HeldInterrupts() as interrupts, \
+                    _epoch_bar(progress and d.is_main, f"epoch {epoch + 1}/{epochs}", len(loader), skip) as advance:
                 for i, batch in enumerate(loader, start=skip + 1):
                     with interrupts.held():
                         if batch_transform is not None:
@@ -405,27 +405,14 @@ def _duration(seconds: float) -> str:
     return f"{seconds:.0f} s" if seconds < 90 else f"{seconds / 60:.1f} min"
 
 
-class _EpochBar:
-    """A transient rich bar over one epoch's batches on stderr, shown on a terminal only."""
+@contextlib.contextmanager
+def _epoch_bar(shown: bool, description: str, total: int, done: int):
+    """A transient bar over one epoch's batches on stderr (a terminal only); yields ``advance()``."""
+    from .parallel import progress_bar
 
-    def __init__(self, enabled: bool):
-        self.enabled = enabled
-
-    @contextlib.contextmanager
-    def epoch(self, description: str, total: int, done: int):
-        if not self.enabled:
-            yield lambda: None
-            return
-        from rich.console import Console
-        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, \
-            TimeRemainingColumn
-
-        console = Console(stderr=True)
-        with Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                      TimeRemainingColumn(), console=console, transient=True,
-                      disable=not console.is_terminal) as bar:
-            task = bar.add_task(description, total=total, completed=done)
-            yield lambda: bar.advance(task)
+    with progress_bar(quiet=not shown, transient=True) as bar:
+        task = bar.add_task(description, total=total, completed=done)
+        yield lambda: bar.advance(task)
 
 
 # -- registered models ------------------------------------------------------------------------
