@@ -68,6 +68,9 @@ from typing import Callable  # noqa: E402
 
 import numpy as np  # noqa: E402
 
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from commands import cpu_model  # noqa: E402
+
 BACKENDS = ("mujoco", "pybullet", "robosuite")
 CUBE = 0.06  # edge of the stacked cubes (m)
 N_CUBES = 6
@@ -426,17 +429,6 @@ def table(rows: list[Row]) -> str:
 # ------------------------------------------------------------------------------------------------
 # the machine
 # ------------------------------------------------------------------------------------------------
-def cpu_model() -> str:
-    try:
-        with open("/proc/cpuinfo") as fh:
-            for line in fh:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
-
-
 def gl_renderer() -> str:
     """The OpenGL renderer MuJoCo gets here (e.g. Mesa llvmpipe: software rasterisation)."""
     try:

@@ -10,11 +10,34 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import platform
 import shutil
 import subprocess
 import sys
 import time
 from pathlib import Path
+
+
+def cpu_model() -> str:
+    try:
+        with open("/proc/cpuinfo") as fh:
+            for line in fh:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown"
+
+
+def machine(device: str = "cpu") -> str:
+    """The machine a benchmark's wall times belong to: CPU, cores, vector capability, and the precision
+    ``train.precision=auto`` trains in here (a 2-core CPU without native bf16 trains several times slower)."""
+    import torch
+
+    from physint_cli.training import resolve_precision
+
+    return (f"{platform.node()}: {cpu_model()}, {os.cpu_count()} CPUs ({torch.backends.cpu.get_cpu_capability()}), "
+            f"training on {device} in {resolve_precision('auto', device)}")
 
 
 def physint() -> list[str]:

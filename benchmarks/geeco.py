@@ -27,13 +27,11 @@ Results are read back from each run's ``metrics.json``; nothing here computes a 
 from __future__ import annotations
 
 import json
-import os
-import platform
 import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from commands import Steps, benchmark_parser, metrics, minutes, pct, report  # noqa: E402
+from commands import Steps, benchmark_parser, machine, metrics, minutes, pct, report  # noqa: E402
 
 # Table 6.4.1 (lambda = 1) and Table 6.C.1: (REACH, PUSH) and (REACH, PICK, PLACE) in %
 THESIS = {
@@ -81,7 +79,7 @@ def main(argv: list[str] | None = None) -> int:
     b = Steps(Path(args.home).resolve(), args.preset, args.workers, args.backend)
     rows: list[tuple[str, str, str, str]] = []
     figures: dict = {"preset": args.preset, "backend": args.backend,
-                     "machine": f"{platform.node()} ({os.cpu_count()} CPUs)"}
+                     "machine": machine()}
     w = ["--workers", str(args.workers)]
 
     def dataset(name: str, scene: str, skill: str) -> Path:

@@ -24,13 +24,11 @@ read back from each run's ``metrics.json``; nothing here computes a metric itsel
 from __future__ import annotations
 
 import json
-import os
-import platform
 import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from commands import Steps, benchmark_parser, minutes, pct, report  # noqa: E402
+from commands import Steps, benchmark_parser, machine, minutes, pct, report  # noqa: E402
 
 # thesis Table 3.3 (simulated row), Table 3.4 (first row) and the small-preset goals
 THESIS = {
@@ -84,7 +82,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--skip takes cubes, cross, deploy; got {', '.join(sorted(unknown))}")
     b = Bench(Path(args.home).resolve(), args.preset, args.workers, args.backend)
     rows: list[tuple[str, str, str, str]] = []  # (measure, thesis, physint, goal)
-    figures: dict = {"preset": args.preset, "machine": f"{platform.node()} ({os.cpu_count()} CPUs)"}
+    figures: dict = {"preset": args.preset, "machine": machine()}
 
     # 1-3: CCS dataset, predictor, evaluation (Table 3.3, Table 3.4)
     ccs = b.dataset("ccs")
