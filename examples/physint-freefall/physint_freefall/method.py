@@ -223,7 +223,7 @@ class FreeFall(Method):
 
         result = fit(model, train_set, val_set, run=Run(ctx.run), epochs=cfg.epochs, batch_size=cfg.batch_size,
                      lr=cfg.lr, loss_fn=loss_fn, metric_fn=val_mae, device=ctx.device, seed=ctx.seed,
-                     resume=bool(ctx.options.get("resume")), log=ctx.log,
+                     resume=bool(ctx.options.get("resume")), log=ctx.log, progress=not ctx.quiet,
                      meta={"model": model_name, "kwargs": {"hidden": cfg.hidden, "layers": cfg.layers}})
         _plot_curve(Run(ctx.run), result.history)
         return {"model": model_name, "epochs": result.epochs, "val_mae_s": result.best_metric,
