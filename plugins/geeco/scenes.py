@@ -20,6 +20,7 @@ onto which target).
 from __future__ import annotations
 
 import colorsys
+import functools
 import math
 from dataclasses import dataclass, field
 from typing import Callable
@@ -271,9 +272,18 @@ def build_scene(ep: Episode, resolution: int) -> Scene:
 PRISMA_PERIOD = 50  # frames per loop (2 s at 25 Hz)
 
 
+@functools.lru_cache(maxsize=8)
+def unit_grid(size: int) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel coordinates (y, x) of a ``size`` x ``size`` video frame in image widths, [0, 1);
+    made once per size and read-only (every frame of every background video uses them)."""
+    y, x = np.mgrid[0:size, 0:size] / size
+    y.flags.writeable = x.flags.writeable = False
+    return y, x
+
+
 def prisma_frame(step: int, size: int) -> np.ndarray:
     """Frame ``step`` of the looping rainbow video: diagonal hue bands drifting across the image."""
-    y, x = np.mgrid[0:size, 0:size] / size
+    y, x = unit_grid(size)
     hue = (x + 0.6 * y + step / PRISMA_PERIOD) % 1.0
     rgb = np.stack(np.vectorize(colorsys.hsv_to_rgb)(hue, 0.9, 0.95), axis=-1)
     return (rgb * 255).astype(np.uint8)
@@ -326,7 +336,7 @@ def random_backdrop(seed: int) -> Callable[[int, int], np.ndarray]:
     def video(step: int, size: int) -> np.ndarray:
         if size in still:
             return still[size]
-        y, x = np.mgrid[0:size, 0:size] / size
+        y, x = unit_grid(size)
         frame = (colours(x - drift[0] * step, y - drift[1] * step) * 255).astype(np.uint8)
         if not speed:
             frame.flags.writeable = False
