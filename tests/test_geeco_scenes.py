@@ -97,6 +97,18 @@ def test_random_background_videos_are_the_same_for_a_seed_differ_between_seeds_a
     assert S.background_video(S.sample_episode("prisma", "push", (0, 0), np.random.default_rng(0))) is S.prisma_frame
 
 
+
+def test_the_rainbow_video_has_colorsyss_colours_loops_and_drifts():
+    import colorsys
+
+    hues = np.random.default_rng(0).random(500)
+    hues[:6] = [0.0, 1 / 6, 0.5, 4 / 6, 5 / 6, np.nextafter(1.0, 0.0)]  # sector edges
+    expected = np.array([colorsys.hsv_to_rgb(h, 0.9, 0.95) for h in hues])
+    assert (S.hsv_to_rgb(hues, 0.9, 0.95) == expected).all()  # the same floats, not merely close
+    frame = S.prisma_frame(3, 32)
+    assert frame.shape == (32, 32, 3) and frame.dtype == np.uint8 and len(np.unique(frame.reshape(-1, 3), axis=0)) > 20
+    assert (S.prisma_frame(3 + S.PRISMA_PERIOD, 32) == frame).all() and not (S.prisma_frame(4, 32) == frame).all()
+
 # -- the scripted expert ---------------------------------------------------------------------------
 
 def run_expert(sim, ep: S.Episode) -> tuple[bool, bool]:
