@@ -291,7 +291,7 @@ def test_dagger_labels_the_states_a_controller_reaches_with_the_experts_commands
     knows where the hand was sent (``Expert.follow``): from the detour's end on its labels are the
     commands of an expert that drove itself, and the cube ends on its target."""
     import physint_backends as pb
-    from physint_plugins.geeco.dagger import rollout
+    from physint_plugins.geeco.dagger import rollouts
     from physint_plugins.geeco.expert import on_target
     from physint_plugins.geeco.train import episodes_of
 
@@ -300,7 +300,7 @@ def test_dagger_labels_the_states_a_controller_reaches_with_the_experts_commands
     ep = episodes_of(demos, "goal2cube2", "push")[0]
     with pb.make("mujoco", S.build_scene(ep, 32)) as sim:
         controller = _ExpertWithDetour(sim, ep, detour=8)
-        r = rollout(sim, ep, controller, demos["rgb"][0, -1], 100)
+        (r,) = rollouts([sim], [ep], [controller], [demos["rgb"][0, -1]], 100)
         assert on_target(ep, sim)
     commands = np.array(controller.commands)
     assert np.allclose(r["dee"][8:], commands[8:, :3], atol=1e-9)
@@ -309,8 +309,9 @@ def test_dagger_labels_the_states_a_controller_reaches_with_the_experts_commands
     # a controller that never moves, overruled by the expert at a step's chance of beta
     still = type("Still", (), {"reset": lambda self, target: None, "act": lambda self, rgb, joints, hand=None, truth=None: np.zeros(4)})()
     with pb.make("mujoco", S.build_scene(ep, 32)) as sim:
-        assert not rollout(sim, ep, still, demos["rgb"][0, -1], 100)["on_target"]
-        assert rollout(sim, ep, still, demos["rgb"][0, -1], 100, beta=0.95, rng=np.random.default_rng(0))["on_target"]
+        assert not rollouts([sim], [ep], [still], [demos["rgb"][0, -1]], 100)[0]["on_target"]
+        assert rollouts([sim], [ep], [still], [demos["rgb"][0, -1]], 100, beta=0.95,
+                        rng=np.random.default_rng(0))[0]["on_target"]
 
 
 def test_dagger_rounds_join_the_training_data_and_are_reloaded_on_resume(tiny_pipeline, tmp_path):

@@ -294,6 +294,35 @@ def test_the_controller_step_by_step_answers_as_the_whole_window_would(variant, 
         assert action[3] == (-1, 0, 1)[int(whole["grip"][0, t].argmax())]
 
 
+
+@pytest.mark.parametrize("variant,head", [("geeco-f", {"norm": True}), ("geeco-d", {}), ("geeco-r", {}), ("e2evmc", {}),
+                                          ("geeco-f", {"command": "positions"})])
+def test_controllers_acting_together_answer_as_each_alone(variant, head):
+    """Training's closed loops step episodes side by side, their frames through the network as one
+    batch (``act_together``): each episode gets the action its policy would give on its own."""
+    from physint_plugins.geeco.control import Policy, act_together
+    from physint_plugins.geeco.model import Geeco
+
+    torch.manual_seed(0)
+    rng = np.random.default_rng(1)
+    model = Geeco(variant, image_size=32, width=0.25, **head)
+    with torch.no_grad():  # answers far apart for different frames (an untrained network's barely differ)
+        for p in [*model.heads.parameters(), *getattr(model, "command_head", model.heads).parameters()]:
+            p.normal_(0, 1)
+    together, alone = [Policy(model) for _ in range(3)], [Policy(model) for _ in range(3)]
+    for a, b in zip(together, alone):
+        target = rng.integers(0, 255, (32, 32, 3), dtype=np.uint8)
+        a.reset(target)
+        b.reset(target)
+    for t in range(6):
+        observations = [(rng.integers(0, 255, (32, 32, 3), dtype=np.uint8), rng.normal(size=7).astype(np.float32),
+                         rng.uniform(-0.2, 0.2, 3) + [0, 0, 0.9], None) for _ in range(3)]
+        actions = act_together(together, observations)
+        expected = [policy.act(*obs) for policy, obs in zip(alone, observations)]
+        assert np.allclose(actions, expected, rtol=1e-4, atol=1e-5), t
+        assert all(np.allclose(a.last["obj"], b.last["obj"], atol=1e-5) for a, b in zip(together, alone))
+    assert len({tuple(np.round(a[:3], 4)) for a in actions}) == 3  # three episodes, three answers
+
 def test_a_positions_controller_commands_from_the_hand_it_feels_and_the_objects_it_sees():
     """With ``command="positions"`` the command is the command head's answer for the measured hand
     and the network's object estimates over the last K steps (padded with the first, as the frames

@@ -30,6 +30,7 @@ DEE_SCALE = 0.03  # network u_dEE is in units of the expert's free-space step (m
 POS_SCALE = 0.1  # network positions are in decimetres from the table centre
 GRIP_COMMAND = (-1, 0, 1)  # class id -> gripper command (open, no-op, close)
 LIFTED = 0.02  # PICK: the object's bottom at least this far off the table
+LOCKSTEP = 16  # training's closed-loop episodes (validation, DAgger) stepped side by side, at most
 
 
 def scale_positions(q: np.ndarray) -> np.ndarray:
@@ -77,22 +78,20 @@ class Policy:
         controller takes with its estimates of the object's and the target's (without it, its own
         estimate of the hand's); ``truth``: the object's true position (3) and the target's (2), m,
         to use instead of those estimates (``eval.positions=true``)."""
+        return act_together([self], [(rgb, joints, hand, truth)])[0]
+
+    def _push(self, frame, joints, item) -> None:
+        """Add this step's frame (1, 1, 3, S, S), joint angles (1, 1, 7) and what the network keeps
+        of it to the buffer; at an episode's start, pad with copies of it (the robot is at rest)."""
+        if not self.buffer:
+            self.buffer.extend([(frame, joints, item)] * (self.buffer.maxlen - 1))
+        self.buffer.append((frame, joints, item))
+
+    def _action(self, out: dict[str, Any], frames, hand: np.ndarray | None,
+                truth: tuple[np.ndarray, np.ndarray] | None) -> np.ndarray:
+        """This policy's heads (batch of one) -> its robot action; ``last`` keeps its estimates."""
         import torch
 
-        frame = to_tensor_frames(rgb)[None, None].to(self.device)  # (1, 1, 3, S, S)
-        x = torch.as_tensor(joints, dtype=torch.float32)[None, None].to(self.device)
-        with torch.no_grad():
-            # per-frame variants keep each frame's state: one new frame is encoded per step
-            item = frame if self.model.variant == "geeco-f" else self.model.frame_states(frame, x, self.target)
-            if not self.buffer:  # episode start: pad with copies of the oldest frame (the robot is at rest)
-                self.buffer.extend([(frame, x, item)] * (self.buffer.maxlen - 1))
-            self.buffer.append((frame, x, item))
-            frames = torch.cat([f for f, _, _ in self.buffer], dim=1)
-            if self.model.variant == "geeco-f":
-                out = {k: v[:, -1] for k, v in self.model(frames, torch.cat([j for _, j, _ in self.buffer], dim=1),
-                                                          self.target).items()}
-            else:
-                out = self.model.decide(torch.cat([s for _, _, s in self.buffer], dim=1))
         if getattr(self.model, "command", "network") == "positions":
             if truth is not None:
                 out["obj"] = torch.from_numpy(scale_positions(truth[0]))[None].to(out["obj"].device)
@@ -122,6 +121,37 @@ class Policy:
             return self.model.command_from_positions(*history, out["goal"].float())
 
 
+def act_together(policies: list[Policy], observations: list[tuple]) -> list[np.ndarray]:
+    """The next action of each of ``policies`` (all of one model, each in its own episode) for its
+    ``(rgb, joints, hand, truth)`` as :meth:`Policy.act` takes them: their frames go through the
+    network as one batch, which on a CPU costs a fraction of one forward pass per episode. Any
+    other object with an ``act`` (a scripted stand-in) acts on its own."""
+    import torch
+
+    if not all(isinstance(p, Policy) for p in policies):
+        return [p.act(*obs) for p, obs in zip(policies, observations)]
+    model, device = policies[0].model, policies[0].device
+    frames = [to_tensor_frames(rgb)[None, None].to(device) for rgb, *_ in observations]  # (1, 1, 3, S, S)
+    joints = [torch.as_tensor(obs[1], dtype=torch.float32)[None, None].to(device) for obs in observations]
+    with torch.no_grad():
+        if model.variant == "geeco-f":  # encodes the whole buffer's dynamic image at every step
+            items = frames
+        else:  # per-frame variants keep each frame's state: one new frame is encoded per step
+            targets = torch.cat([p.target for p in policies]) if model.conditioned else None
+            items = model.frame_states(torch.cat(frames), torch.cat(joints), targets).split(1)
+        for policy, frame, x, item in zip(policies, frames, joints, items):
+            policy._push(frame, x, item)
+        buffers = [torch.cat([f for f, _, _ in p.buffer], dim=1) for p in policies]  # (1, K, 3, S, S) each
+        if model.variant == "geeco-f":
+            out = {k: v[:, -1] for k, v in model(torch.cat(buffers), torch.cat(
+                [torch.cat([j for _, j, _ in p.buffer], dim=1) for p in policies]),
+                torch.cat([p.target for p in policies])).items()}
+        else:
+            out = model.decide(torch.cat([torch.cat([s for _, _, s in p.buffer], dim=1) for p in policies]))
+    return [policy._action({k: v[i:i + 1] for k, v in out.items()}, buffer, *obs[2:])
+            for i, (policy, buffer, obs) in enumerate(zip(policies, buffers, observations))]
+
+
 def observe(sim, step: int, video=None) -> np.ndarray:
     """The camera frame at ``step``, its background replaced by ``video`` if one is given
     (``S.background_video``: BG:PRISMA's rainbow, or a demonstration's random background)."""
@@ -142,42 +172,92 @@ def expert_target(sim, ep: S.Episode, resolution: int, horizon: int = 100) -> np
     return observe(sim, horizon, S.background_video(ep))
 
 
+class ClosedLoop:
+    """One closed-loop episode from ``ep``'s start state on ``sim``, scored as it runs: REACH, PICK,
+    a diverged command, and at the end PUSH / PLACE (:meth:`result`). ``true_positions``: a
+    ``command="positions"`` controller gets the simulator's object and target positions instead of
+    its network's estimates."""
+
+    def __init__(self, sim, ep: S.Episode, policy, target_rgb: np.ndarray | None, resolution: int,
+                 true_positions: bool = False):
+        self.sim, self.ep, self.true_positions = sim, ep, true_positions
+        sim.reset(S.build_scene(ep, resolution))
+        policy.reset(target_rgb)
+        self.video = S.background_video(ep)
+        self.reach = self.pick = self.diverged = self.gripper_closed = False
+        self.steps = 0
+
+    def observe(self, step: int) -> tuple:
+        """What the policy gets at ``step``: (rgb, joints, hand, truth), as :meth:`Policy.act` takes them."""
+        sim, ep = self.sim, self.ep
+        state = sim.robot.state()
+        truth = (sim.get_pose(ep.object)[0], ep.xy(ep.target)) if self.true_positions else None
+        return (observe(sim, step, self.video), np.asarray(state.joints, dtype=np.float32),
+                np.asarray(state.ee_pos), truth)
+
+    def apply(self, action: np.ndarray) -> bool:
+        """Execute ``action``; False (and the episode is over, a failure) if it is not finite."""
+        sim, ep = self.sim, self.ep
+        self.steps += 1
+        if not np.all(np.isfinite(action)):
+            self.diverged = True
+            return False
+        sim.robot.act(action)
+        if action[3] != 0:
+            self.gripper_closed = action[3] > 0
+        self.reach = self.reach or sim.robot.touching(ep.object)
+        if not self.pick and self.gripper_closed and sim.robot.touching(ep.object, "fingers"):
+            bottom = sim.get_pose(ep.object)[0][2] - S.object_half_height(ep.object) - S.TABLE_Z
+            self.pick = bottom > LIFTED
+        return True
+
+    def result(self, seconds: float) -> dict[str, Any]:
+        sim, ep = self.sim, self.ep
+        final_xy = sim.get_pose(ep.object)[0][:2]
+        return {"reach": bool(self.reach), "pick": bool(self.pick),
+                "success": bool((not self.diverged) and on_target(ep, sim)), "diverged": self.diverged,
+                "steps": self.steps, "seconds": seconds,
+                # how far the object is from its target's centre (m), at the start and at the end
+                "start_distance": float(np.linalg.norm(ep.xy(ep.object) - ep.xy(ep.target))),
+                "final_distance": float(np.linalg.norm(final_xy - ep.xy(ep.target))),
+                "final_xy": [round(float(v), 4) for v in final_xy]}  # where the object ended (m)
+
+
 def run_episode(sim, ep: S.Episode, policy: Policy, target_rgb: np.ndarray | None, steps: int, resolution: int,
                 on_step=None, true_positions: bool = False) -> dict[str, Any]:
-    """One closed-loop episode from ``ep``'s start state; ``on_step(t, rgb, action, policy)`` sees each step.
-    ``policy`` has :class:`Policy`'s ``reset(target_rgb)`` and ``act(rgb, joints, hand, truth)``.
-    ``true_positions``: a ``command="positions"`` controller gets the simulator's object and target
-    positions instead of its network's estimates."""
-    sim.reset(S.build_scene(ep, resolution))
-    policy.reset(target_rgb)
-    reach = pick = diverged = False
-    gripper_closed = False
+    """One closed-loop episode (:class:`ClosedLoop`); ``on_step(t, rgb, action, policy)`` sees each step.
+    ``policy`` has :class:`Policy`'s ``reset(target_rgb)`` and ``act(rgb, joints, hand, truth)``."""
+    loop = ClosedLoop(sim, ep, policy, target_rgb, resolution, true_positions)
     t0 = time.perf_counter()
-    step = 0
-    video = S.background_video(ep)
     for step in range(steps):
-        rgb = observe(sim, step, video)
-        state = sim.robot.state()
-        truth = (sim.get_pose(ep.object)[0], ep.xy(ep.target)) if true_positions else None
-        action = policy.act(rgb, np.asarray(state.joints, dtype=np.float32), np.asarray(state.ee_pos), truth)
+        observation = loop.observe(step)
+        action = policy.act(*observation)
         if on_step is not None:
-            on_step(step, rgb, action, policy)
-        if not np.all(np.isfinite(action)):
-            diverged = True
+            on_step(step, observation[0], action, policy)
+        if not loop.apply(action):
             break
-        state = sim.robot.act(action)
-        if action[3] != 0:
-            gripper_closed = action[3] > 0
-        reach = reach or sim.robot.touching(ep.object)
-        if not pick and gripper_closed and sim.robot.touching(ep.object, "fingers"):
-            bottom = sim.get_pose(ep.object)[0][2] - S.object_half_height(ep.object) - S.TABLE_Z
-            pick = bottom > LIFTED
-    seconds = time.perf_counter() - t0
-    success = (not diverged) and on_target(ep, sim)
-    final_xy = sim.get_pose(ep.object)[0][:2]
-    return {"reach": bool(reach), "pick": bool(pick), "success": bool(success), "diverged": diverged,
-            "steps": step + 1, "seconds": seconds,
-            # how far the object is from its target's centre (m), at the start and at the end
-            "start_distance": float(np.linalg.norm(ep.xy(ep.object) - ep.xy(ep.target))),
-            "final_distance": float(np.linalg.norm(final_xy - ep.xy(ep.target))),
-            "final_xy": [round(float(v), 4) for v in final_xy]}  # where the object ended (m)
+    return loop.result(time.perf_counter() - t0)
+
+
+def sims_for(sims: list, make_sim, episodes: list[S.Episode], resolution: int) -> list:
+    """The first ``len(episodes)`` of ``sims``, made with ``make_sim(scene)`` where there are fewer."""
+    while len(sims) < len(episodes):
+        sims.append(make_sim(S.build_scene(episodes[len(sims)], resolution)))
+    return sims[:len(episodes)]
+
+
+def run_episodes(sims: list, episodes: list[S.Episode], policies: list[Policy], targets: list, steps: int,
+                 resolution: int) -> list[dict[str, Any]]:
+    """Episodes side by side, one simulation and one policy (of one model) each, stepped in lockstep
+    so that their frames go through the network as one batch (:func:`act_together`); the results of
+    :func:`run_episode`, each episode's ``seconds`` its share of the wall time."""
+    loops = [ClosedLoop(*args, resolution) for args in zip(sims, episodes, policies, targets)]
+    live = list(range(len(loops)))
+    t0 = time.perf_counter()
+    for step in range(steps):
+        if not live:
+            break
+        actions = act_together([policies[i] for i in live], [loops[i].observe(step) for i in live])
+        live = [i for i, action in zip(live, actions) if loops[i].apply(action)]
+    seconds = (time.perf_counter() - t0) / max(1, len(loops))
+    return [loop.result(seconds) for loop in loops]

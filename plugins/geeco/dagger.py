@@ -30,7 +30,7 @@ import numpy as np
 from physint_cli.errors import BadInput
 
 from . import scenes as S
-from .control import Policy, observe
+from .control import LOCKSTEP, Policy, act_together, observe, sims_for
 from .dataset import empty_episode, record_step
 from .expert import Expert, on_target
 
@@ -64,32 +64,44 @@ def parse_epochs(text: str, epochs: int, skill: str, command: str = "network") -
     return rounds
 
 
-def rollout(sim, ep: S.Episode, policy: Policy, target: np.ndarray, horizon: int, beta: float = 0.0,
-            rng: np.random.Generator | None = None) -> dict[str, np.ndarray] | None:
-    """The controller drives for ``horizon`` steps from ``ep``'s start state (with probability
-    ``beta`` a step executes the expert's command instead); every step is recorded with the
-    expert's command for that state, and ``on_target`` says whether the object ended on its
-    target. None if the controller diverged."""
-    sim.reset(S.build_scene(ep, target.shape[0]))
-    policy.reset(target)
-    expert = Expert(ep)
-    out = empty_episode(horizon, target.shape[0])
-    video = S.background_video(ep)
+def rollouts(sims: list, episodes: list[S.Episode], policies: list[Policy], targets: list[np.ndarray], horizon: int,
+             beta: float = 0.0, rng: np.random.Generator | None = None) -> list[dict[str, np.ndarray] | None]:
+    """The controller drives for ``horizon`` steps from each episode's start state, the episodes side
+    by side (one simulation and policy each, their frames through the network as one batch); with
+    probability ``beta`` a step executes the expert's command instead. Every step is recorded with
+    the expert's command for that state, and ``on_target`` says whether the object ended on its
+    target. None for an episode where the controller diverged."""
+    resolution = targets[0].shape[0]
+    experts, outs, videos = [], [], []
+    for sim, ep, policy, target in zip(sims, episodes, policies, targets):
+        sim.reset(S.build_scene(ep, resolution))
+        policy.reset(target)
+        experts.append(Expert(ep))
+        outs.append(empty_episode(horizon, resolution))
+        videos.append(S.background_video(ep))
+    live = list(range(len(sims)))
     for t in range(horizon):
-        state, rgb = sim.robot.state(), observe(sim, t, video)
-        label = expert.act(sim)
-        record_step(out, t, sim, ep, state, rgb, label)
-        action = policy.act(rgb, np.asarray(state.joints, dtype=np.float32), np.asarray(state.ee_pos))
-        if not np.all(np.isfinite(action)):
-            return None
-        if beta > 0 and rng.random() < beta:
-            action = label
-        expert.follow(label, action)
-        sim.robot.act(action)
-    out["target"] = target
-    out["goal"] = np.asarray(ep.xy(ep.target), np.float32)  # where the object belongs (x, y), m
-    out["on_target"] = np.bool_(on_target(ep, sim))
-    return out
+        observations, labels = [], []
+        for i in live:
+            sim, state, rgb = sims[i], sims[i].robot.state(), observe(sims[i], t, videos[i])
+            labels.append(experts[i].act(sim))
+            record_step(outs[i], t, sim, episodes[i], state, rgb, labels[-1])
+            observations.append((rgb, np.asarray(state.joints, dtype=np.float32), np.asarray(state.ee_pos), None))
+        actions = act_together([policies[i] for i in live], observations)
+        for i, label, action in zip(list(live), labels, actions):
+            if not np.all(np.isfinite(action)):
+                live.remove(i)
+                outs[i] = None
+                continue
+            if beta > 0 and rng.random() < beta:
+                action = label
+            experts[i].follow(label, action)
+            sims[i].robot.act(action)
+    for i in live:
+        outs[i]["target"] = targets[i]
+        outs[i]["goal"] = np.asarray(episodes[i].xy(episodes[i].target), np.float32)  # where the object belongs (x, y), m
+        outs[i]["on_target"] = np.bool_(on_target(episodes[i], sims[i]))
+    return outs
 
 
 def aggregation_round(make_sim, model, demos: dict[str, np.ndarray], scene: str, episodes: int, horizon: int,
@@ -99,18 +111,18 @@ def aggregation_round(make_sim, model, demos: dict[str, np.ndarray], scene: str,
 
     starts = episodes_of(demos, scene, "push")
     chosen = rng.choice(len(starts), size=min(episodes, len(starts)), replace=False)
-    policy, sim, made = Policy(model), None, []
+    sims, made = [], []
     try:
-        for i in chosen:
-            if sim is None:
-                sim = make_sim(S.build_scene(starts[i], demos["rgb"].shape[2]))
-            r = rollout(sim, starts[i], policy, demos["rgb"][i, -1], horizon, beta, rng)
-            if r is not None:
-                made.append(r)
+        for at in range(0, len(chosen), LOCKSTEP):
+            group = chosen[at:at + LOCKSTEP]
+            eps = [starts[i] for i in group]
+            made += rollouts(sims_for(sims, make_sim, eps, demos["rgb"].shape[2]), eps, [Policy(model) for _ in eps],
+                             [demos["rgb"][i, -1] for i in group], horizon, beta, rng)
     finally:
-        if sim is not None:
+        for sim in sims:
             sim.close()
         model.train()
+    made = [r for r in made if r is not None]
     if not made:
         return {}
     return {k: np.stack([r[k] for r in made]) for k in (*ROLLOUT_FIELDS, "on_target")}

@@ -203,19 +203,20 @@ class ClosedLoopProgress:
         self.episodes = episodes_of(demos, ctx.scene, skill)[:episodes]
         self.targets = demos["rgb"][:episodes, -1]
         self.resolution = demos["rgb"].shape[2]
-        self.sim = None
+        self.sims: list = []  # made at the first validation, kept for the next
 
     def __call__(self, model, loader) -> float:
-        from .control import Policy, run_episode
+        from .control import LOCKSTEP, Policy, run_episodes, sims_for
 
-        policy = Policy(model)
         scores = []
-        for ep, target in zip(self.episodes, self.targets):
-            if self.sim is None:
-                self.sim = self.ctx.make_sim(S.build_scene(ep, self.resolution))
-            r = run_episode(self.sim, ep, policy, target if model.conditioned else None, self.steps, self.resolution)
-            parts = [r["reach"], r["success"]] if self.skill == "push" else [r["reach"], r["pick"], r["success"]]
-            scores.append(float(np.mean(parts)))
+        for start in range(0, len(self.episodes), LOCKSTEP):
+            episodes = self.episodes[start:start + LOCKSTEP]
+            targets = [t if model.conditioned else None for t in self.targets[start:start + LOCKSTEP]]
+            sims = sims_for(self.sims, self.ctx.make_sim, episodes, self.resolution)
+            for r in run_episodes(sims, episodes, [Policy(model) for _ in episodes], targets, self.steps,
+                                  self.resolution):
+                parts = [r["reach"], r["success"]] if self.skill == "push" else [r["reach"], r["pick"], r["success"]]
+                scores.append(float(np.mean(parts)))
         model.train()
         return float(np.mean(scores))
 
