@@ -325,6 +325,9 @@ class OffscreenRenderer:
             self._gl = _GLResources(self.model)
             self._finalizer = weakref.finalize(self, self._gl.free)
         self._gl.gl.make_current()
+        # several models share the OpenGL context: bind this one's offscreen framebuffer, which
+        # the render context made last (by another simulation in this process) left bound
+        mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN.value, self._gl.con)
         return self._gl
 
     def render(self, data: mujoco.MjData, camera_id: int, width: int, height: int, *, rgb: bool = True,

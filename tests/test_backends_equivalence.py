@@ -128,6 +128,31 @@ def test_segmentation_masks_agree_with_projection(backend):
     assert frame.depth[v, u] == pytest.approx(expected_depth, abs=0.03)
 
 
+
+def test_simulations_alive_side_by_side_each_render_their_own_scene(backend):
+    """Several simulations in one process (a controller's episodes stepped side by side), rendered
+    in turn as they move: every image shows its own simulation's scene."""
+    cam = Camera("front", pos=(0.7, 0.0, 0.35), lookat=(0.0, 0.0, 0.1), fovy=45, width=48, height=48)
+
+    def red_column(frame):  # where the red box is, across the image (pixels)
+        red = (frame.rgb[..., 0] > 150) & (frame.rgb[..., 1] < 80) & (frame.rgb[..., 2] < 80)
+        assert red.sum() > 10
+        return np.nonzero(red)[1].mean()
+
+    sims = [pb.make(backend, Scene(bodies=[Body.box("red", (0.08, 0.08, 0.08), pos=(0.0, y, 0.04), rgba=(1, 0, 0, 1))],
+                                   cameras=[cam])) for y in (-0.15, 0.0, 0.15)]
+    try:
+        for step in range(3):
+            for k, sim in enumerate(sims):
+                sim.set_pose("red", (0.0, (k - 1) * 0.15 + 0.02 * step, 0.04))
+                sim.step(1)
+            columns = [red_column(sim.render("front")) for sim in sims]
+            alone = [cam.project(np.asarray([0.0, (k - 1) * 0.15 + 0.02 * step, 0.04]))[0][0] for k in range(3)]
+            assert np.allclose(columns, alone, atol=2.5), (step, columns, alone)
+    finally:
+        for sim in sims:
+            sim.close()
+
 def test_bad_input_leaves_state_unchanged(backend):
     scene = Scene(bodies=[Body.box("box", (0.1, 0.1, 0.1), pos=(0, 0, 0.05))], cameras=[Camera("cam")])
     with pb.make(backend, scene) as sim:
