@@ -165,6 +165,32 @@ def test_a_diverging_controller_fails_its_episode_without_stopping_the_evaluatio
         assert again["steps"] == 3 and not again["diverged"]
 
 
+def test_episodes_side_by_side_end_as_each_alone_and_a_diverging_one_leaves_the_others_running():
+    """``run_episodes`` steps episodes in lockstep (training's validation): each ends as it would
+    alone, and one whose controller diverges stops there while the others go on."""
+    import physint_backends as pb
+    from physint_plugins.geeco.control import run_episode, run_episodes
+
+    eps = [S.sample_episode("goal2cube2", "push", task, np.random.default_rng(i))
+           for i, task in enumerate([(0, 0), (1, 1), (0, 1)])]
+    sims = [pb.make("mujoco", S.build_scene(ep, 32)) for ep in eps]
+    try:
+        alone = [run_episode(sim, ep, _ExpertWithDetour(sim, ep, detour=0), None, 100, 32)
+                 for sim, ep in zip(sims, eps)]
+        stand_ins = [_ExpertWithDetour(sim, ep, detour=0) for sim, ep in zip(sims, eps)]
+        stand_ins[1].act = lambda *args: np.array([np.nan, 0.0, 0.0, 0.0]) if stand_ins[1].t > 9 else \
+            _ExpertWithDetour.act(stand_ins[1], *args)
+        together = run_episodes(sims, eps, stand_ins, [None] * 3, 100, 32)
+    finally:
+        for sim in sims:
+            sim.close()
+    assert all(r["success"] and r["reach"] for r in alone)
+    for i in (0, 2):
+        assert together[i]["success"] and together[i]["steps"] == 100
+        assert np.allclose(together[i]["final_xy"], alone[i]["final_xy"], atol=2e-3)
+    assert together[1]["diverged"] and together[1]["steps"] == 11 and not together[1]["success"]
+
+
 def test_behaviour_cloning_on_demonstrations_beats_the_mean_command(tiny_pipeline):
     """Trained on the tiny demonstrations (Eq. 6.3), GEECO-D predicts the expert's commands on its
     training windows far better than always answering the average command."""

@@ -2,8 +2,9 @@
 
 :class:`Policy` keeps the observation buffer of the last K (frame, joint angles) pairs, padded
 on the left with copies of the oldest at the start of an episode (Appendix 6.A), and turns the
-network's outputs back into robot commands. :func:`run_episode` runs one episode and scores it
-the thesis's way:
+network's outputs back into robot commands; :func:`act_together` steps several policies of one
+model with one forward pass. :func:`run_episode` runs one episode (:func:`run_episodes` several
+side by side, in lockstep) and scores it the thesis's way (:class:`ClosedLoop`):
 
 * REACH: the robot touched the object to move at least once;
 * PICK: the object was held: the fingers touch it with the gripper closed and it is lifted at
