@@ -128,7 +128,6 @@ def test_segmentation_masks_agree_with_projection(backend):
     assert frame.depth[v, u] == pytest.approx(expected_depth, abs=0.03)
 
 
-
 def test_simulations_alive_side_by_side_each_render_their_own_scene(backend):
     """Several simulations in one process (a controller's episodes stepped side by side), rendered
     in turn as they move: every image shows its own simulation's scene."""
@@ -152,6 +151,7 @@ def test_simulations_alive_side_by_side_each_render_their_own_scene(backend):
     finally:
         for sim in sims:
             sim.close()
+
 
 def test_bad_input_leaves_state_unchanged(backend):
     scene = Scene(bodies=[Body.box("box", (0.1, 0.1, 0.1), pos=(0, 0, 0.05))], cameras=[Camera("cam")])

@@ -97,7 +97,6 @@ def test_random_background_videos_are_the_same_for_a_seed_differ_between_seeds_a
     assert S.background_video(S.sample_episode("prisma", "push", (0, 0), np.random.default_rng(0))) is S.prisma_frame
 
 
-
 def test_the_rainbow_video_has_colorsyss_colours_loops_and_drifts():
     import colorsys
 
@@ -294,7 +293,6 @@ def test_the_controller_step_by_step_answers_as_the_whole_window_would(variant, 
         assert action[3] == (-1, 0, 1)[int(whole["grip"][0, t].argmax())]
 
 
-
 @pytest.mark.parametrize("variant,head", [("geeco-f", {"norm": True}), ("geeco-d", {}), ("geeco-r", {}), ("e2evmc", {}),
                                           ("geeco-f", {"command": "positions"})])
 def test_controllers_acting_together_answer_as_each_alone(variant, head):
@@ -322,6 +320,11 @@ def test_controllers_acting_together_answer_as_each_alone(variant, head):
         assert np.allclose(actions, expected, rtol=1e-4, atol=1e-5), t
         assert all(np.allclose(a.last["obj"], b.last["obj"], atol=1e-5) for a, b in zip(together, alone))
     assert len({tuple(np.round(a[:3], 4)) for a in actions}) == 3  # three episodes, three answers
+    if model.conditioned:  # an episode without its target image is refused, whoever it acts with
+        together[1].reset(None)
+        with pytest.raises(ValueError, match="needs a target image"):
+            act_together(together, observations)
+
 
 def test_a_positions_controller_commands_from_the_hand_it_feels_and_the_objects_it_sees():
     """With ``command="positions"`` the command is the command head's answer for the measured hand

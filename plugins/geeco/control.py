@@ -58,7 +58,10 @@ def to_tensor_frames(frames: np.ndarray):
 class Policy:
     """A trained controller with its observation buffer."""
 
-    def __init__(self, model, device: str = "cpu"):
+    def __init__(self, model, device: str | None = None):
+        """``device``: where to run the model (default: where its weights are, so a model in
+        training stays on its device)."""
+        device = device or str(next(model.parameters()).device)
         self.model = model.eval().to(device)
         self.device = device
         self.buffer: deque = deque(maxlen=model.buffer)
@@ -129,9 +132,13 @@ def act_together(policies: list[Policy], observations: list[tuple]) -> list[np.n
     other object with an ``act`` (a scripted stand-in) acts on its own."""
     import torch
 
-    if not all(isinstance(p, Policy) for p in policies):
-        return [p.act(*obs) for p, obs in zip(policies, observations)]
+    if not policies or not all(isinstance(p, Policy) for p in policies):
+        return [p.act(*obs) for p, obs in zip(policies, observations, strict=True)]
     model, device = policies[0].model, policies[0].device
+    if any(p.model is not model for p in policies):
+        raise ValueError("policies acting together must share one model")
+    if model.conditioned and any(p.target is None for p in policies):
+        raise ValueError(f"{model.variant} needs a target image")
     frames = [to_tensor_frames(rgb)[None, None].to(device) for rgb, *_ in observations]  # (1, 1, 3, S, S)
     joints = [torch.as_tensor(obs[1], dtype=torch.float32)[None, None].to(device) for obs in observations]
     with torch.no_grad():
@@ -150,7 +157,7 @@ def act_together(policies: list[Policy], observations: list[tuple]) -> list[np.n
         else:
             out = model.decide(torch.cat([torch.cat([s for _, _, s in p.buffer], dim=1) for p in policies]))
     return [policy._action({k: v[i:i + 1] for k, v in out.items()}, buffer, *obs[2:])
-            for i, (policy, buffer, obs) in enumerate(zip(policies, buffers, observations))]
+            for i, (policy, buffer, obs) in enumerate(zip(policies, buffers, observations, strict=True))]
 
 
 def observe(sim, step: int, video=None) -> np.ndarray:
@@ -252,7 +259,7 @@ def run_episodes(sims: list, episodes: list[S.Episode], policies: list[Policy], 
     """Episodes side by side, one simulation and one policy (of one model) each, stepped in lockstep
     so that their frames go through the network as one batch (:func:`act_together`); the results of
     :func:`run_episode`, each episode's ``seconds`` its share of the wall time."""
-    loops = [ClosedLoop(*args, resolution) for args in zip(sims, episodes, policies, targets)]
+    loops = [ClosedLoop(*args, resolution) for args in zip(sims, episodes, policies, targets, strict=True)]
     live = list(range(len(loops)))
     t0 = time.perf_counter()
     for step in range(steps):

@@ -65,15 +65,16 @@ def parse_epochs(text: str, epochs: int, skill: str, command: str = "network") -
 
 
 def rollouts(sims: list, episodes: list[S.Episode], policies: list[Policy], targets: list[np.ndarray], horizon: int,
-             beta: float = 0.0, rng: np.random.Generator | None = None) -> list[dict[str, np.ndarray] | None]:
+             beta: float = 0.0, rngs: list[np.random.Generator] | None = None) -> list[dict[str, np.ndarray] | None]:
     """The controller drives for ``horizon`` steps from each episode's start state, the episodes side
     by side (one simulation and policy each, their frames through the network as one batch); with
-    probability ``beta`` a step executes the expert's command instead. Every step is recorded with
-    the expert's command for that state, and ``on_target`` says whether the object ended on its
-    target. None for an episode where the controller diverged."""
+    probability ``beta`` a step executes the expert's command instead (drawn from the episode's own
+    generator in ``rngs``). Every step is recorded with the expert's command for that state, and
+    ``on_target`` says whether the object ended on its target. None for an episode where the
+    controller diverged."""
     resolution = targets[0].shape[0]
     experts, outs, videos = [], [], []
-    for sim, ep, policy, target in zip(sims, episodes, policies, targets):
+    for sim, ep, policy, target in zip(sims, episodes, policies, targets, strict=True):
         sim.reset(S.build_scene(ep, resolution))
         policy.reset(target)
         experts.append(Expert(ep))
@@ -81,6 +82,8 @@ def rollouts(sims: list, episodes: list[S.Episode], policies: list[Policy], targ
         videos.append(S.background_video(ep))
     live = list(range(len(sims)))
     for t in range(horizon):
+        if not live:
+            break
         observations, labels = [], []
         for i in live:
             sim, state, rgb = sims[i], sims[i].robot.state(), observe(sims[i], t, videos[i])
@@ -93,7 +96,7 @@ def rollouts(sims: list, episodes: list[S.Episode], policies: list[Policy], targ
                 live.remove(i)
                 outs[i] = None
                 continue
-            if beta > 0 and rng.random() < beta:
+            if beta > 0 and rngs[i].random() < beta:
                 action = label
             experts[i].follow(label, action)
             sims[i].robot.act(action)
@@ -111,13 +114,14 @@ def aggregation_round(make_sim, model, demos: dict[str, np.ndarray], scene: str,
 
     starts = episodes_of(demos, scene, "push")
     chosen = rng.choice(len(starts), size=min(episodes, len(starts)), replace=False)
+    coins = rng.spawn(len(chosen))  # each rollout its own draws, whichever episodes share its group
     sims, made = [], []
     try:
         for at in range(0, len(chosen), LOCKSTEP):
             group = chosen[at:at + LOCKSTEP]
             eps = [starts[i] for i in group]
             made += rollouts(sims_for(sims, make_sim, eps, demos["rgb"].shape[2]), eps, [Policy(model) for _ in eps],
-                             [demos["rgb"][i, -1] for i in group], horizon, beta, rng)
+                             [demos["rgb"][i, -1] for i in group], horizon, beta, coins[at:at + LOCKSTEP])
     finally:
         for sim in sims:
             sim.close()

@@ -220,6 +220,11 @@ class ClosedLoopProgress:
         model.train()
         return float(np.mean(scores))
 
+    def close(self) -> None:
+        for sim in self.sims:
+            sim.close()
+        self.sims.clear()
+
 
 class ValidationLoss:
     """Validation metric when ``train.val_episodes`` is 0: minus the loss of Eq. 6.3 (with the command
@@ -330,13 +335,17 @@ def train(ctx: Context) -> dict[str, Any]:
         def make_optimizer(net):
             return adamw_cosine(net, lr=cfg.lr, weight_decay=0.0, epochs=cfg.epochs)  # Adam, decaying rate
 
-    result = fit(model, train_set, val_set, run=Run(ctx.run), epochs=cfg.epochs, batch_size=cfg.batch_size,
-                 lr=cfg.lr, loss_fn=loss_fn, metric_fn=metric, make_optimizer=make_optimizer, device=ctx.device, seed=ctx.seed,
-                 resume=bool(ctx.options.get("resume")), log=ctx.log, higher_is_better=True,
-                 precision=cfg.precision, batch_transform=to_float_frames, before_epoch=aggregation,
-                 progress=not ctx.quiet, meta={"method": "geeco", "model": name, "kwargs": kwargs, "scene": scene,
-                                               "skill": skill, "backend": manifest["backend"],
-                                               "horizon": data_cfg["horizon"]})
+    try:
+        result = fit(model, train_set, val_set, run=Run(ctx.run), epochs=cfg.epochs, batch_size=cfg.batch_size,
+                     lr=cfg.lr, loss_fn=loss_fn, metric_fn=metric, make_optimizer=make_optimizer, device=ctx.device,
+                     seed=ctx.seed, resume=bool(ctx.options.get("resume")), log=ctx.log, higher_is_better=True,
+                     precision=cfg.precision, batch_transform=to_float_frames, before_epoch=aggregation,
+                     progress=not ctx.quiet, meta={"method": "geeco", "model": name, "kwargs": kwargs, "scene": scene,
+                                                   "skill": skill, "backend": manifest["backend"],
+                                                   "horizon": data_cfg["horizon"]})
+    finally:
+        if isinstance(metric, ClosedLoopProgress):
+            metric.close()  # its simulators and their render contexts
     _plot_curves(Run(ctx.run), result.history, cfg.val_episodes > 0)
     return {"model": name, "skill": skill, "scene": scene, "epochs": result.epochs,
             "val_metric": result.best_metric, "val_metric_is": "closed-loop task progress" if cfg.val_episodes
