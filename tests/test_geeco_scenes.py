@@ -326,6 +326,31 @@ def test_controllers_acting_together_answer_as_each_alone(variant, head):
             act_together(together, observations)
 
 
+@pytest.mark.parametrize("variant", ["geeco-f", "geeco-d", "geeco-r"])
+def test_a_policy_reset_for_another_target_answers_as_a_new_one(variant):
+    """A policy keeps what it knows of an episode's target image (GEECO-R its encoding) only for
+    that episode: reset with another target, it answers as a new policy would."""
+    from physint_plugins.geeco.control import Policy
+    from physint_plugins.geeco.model import Geeco
+
+    torch.manual_seed(0)
+    rng = np.random.default_rng(2)
+    model = Geeco(variant, image_size=32, width=0.25, norm=True)  # normalised: an untrained encoder's codes differ
+    with torch.no_grad():  # answers far apart for different inputs (an untrained network's barely differ)
+        for p in model.heads.parameters():
+            p.normal_(0, 1)
+    first, second = (rng.integers(0, 255, (32, 32, 3), dtype=np.uint8) for _ in range(2))
+    frame, joints = rng.integers(0, 255, (32, 32, 3), dtype=np.uint8), rng.normal(size=7).astype(np.float32)
+    reused, fresh = Policy(model), Policy(model)
+    reused.reset(first)
+    before = reused.act(frame, joints)
+    reused.reset(second)
+    fresh.reset(second)
+    after = reused.act(frame, joints)
+    assert np.allclose(after, fresh.act(frame, joints), atol=1e-6)
+    assert not np.allclose(after[:3], before[:3], atol=1e-4)  # the target image matters to the answer
+
+
 def test_a_positions_controller_commands_from_the_hand_it_feels_and_the_objects_it_sees():
     """With ``command="positions"`` the command is the command head's answer for the measured hand
     and the network's object estimates over the last K steps (padded with the first, as the frames

@@ -67,12 +67,14 @@ class Policy:
         self.buffer: deque = deque(maxlen=model.buffer)
         self.positions: deque = deque(maxlen=model.buffer)  # command="positions": (hand, object) per step
         self.target = None
+        self.target_code = None  # GEECO-R: psi_OBS(I_T), encoded at the episode's first step
         self.last: dict[str, Any] = {}
 
     def reset(self, target_rgb: np.ndarray | None) -> None:
         self.buffer.clear()
         self.positions.clear()
         self.target = None if target_rgb is None else to_tensor_frames(target_rgb)[None].to(self.device)
+        self.target_code = None
 
     def act(self, rgb: np.ndarray, joints: np.ndarray, hand: np.ndarray | None = None,
             truth: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
@@ -146,7 +148,14 @@ def act_together(policies: list[Policy], observations: list[tuple]) -> list[np.n
             items = frames
         else:  # per-frame variants keep each frame's state: one new frame is encoded per step
             targets = torch.cat([p.target for p in policies]) if model.conditioned else None
-            items = model.frame_states(torch.cat(frames), torch.cat(joints), targets).split(1)
+            codes = None
+            if model.variant == "geeco-r":  # the target's encoding is the same all episode: encode it once
+                fresh = [p for p in policies if p.target_code is None]
+                if fresh:
+                    for p, code in zip(fresh, model.target_code(torch.cat([p.target for p in fresh])).split(1)):
+                        p.target_code = code
+                codes = torch.cat([p.target_code for p in policies])
+            items = model.frame_states(torch.cat(frames), torch.cat(joints), targets, codes).split(1)
         for policy, frame, x, item in zip(policies, frames, joints, items):
             policy._push(frame, x, item)
         buffers = [torch.cat([f for f, _, _ in p.buffer], dim=1) for p in policies]  # (1, K, 3, S, S) each

@@ -244,9 +244,15 @@ class Geeco(nn.Module):
             state = per_frame.unfold(1, k, 1).permute(0, 1, 3, 2).flatten(0, 1)  # (B*W, K, state)
         return {name: out.view(b, w, *out.shape[1:]) for name, out in self.decide(state).items()}
 
-    def frame_states(self, frames: torch.Tensor, joints: torch.Tensor, target: torch.Tensor | None) -> torch.Tensor:
+    def target_code(self, target: torch.Tensor) -> torch.Tensor:
+        """GEECO-R's psi_OBS(I_T) of target images (B, 3, S, S): (B, C, s, s)."""
+        return self._encode(self.obs, target - 0.5)
+
+    def frame_states(self, frames: torch.Tensor, joints: torch.Tensor, target: torch.Tensor | None,
+                     target_code: torch.Tensor | None = None) -> torch.Tensor:
         """D, R, E2EVMC: the state s_j of each frame on its own, (B, T, state): in control each new
-        frame is encoded once and kept for the next K - 1 steps."""
+        frame is encoded once and kept for the next K - 1 steps. ``target_code``: GEECO-R's
+        :meth:`target_code` of ``target`` if already known (in control, once an episode)."""
         b, t = frames.shape[:2]
         flat = frames.flatten(0, 1)  # (B*T, 3, S, S)
         obs = self._encode(self.obs, flat - 0.5)
@@ -255,7 +261,7 @@ class Geeco(nn.Module):
             tgt = target[:, None].expand(-1, t, -1, -1, -1).flatten(0, 1)
             maps.append(self._encode(self.diff, dynamic_image(torch.stack([flat, tgt], dim=1))))
         elif self.variant == "geeco-r":
-            goal = self._encode(self.obs, target - 0.5)  # (B, C, s, s)
+            goal = self.target_code(target) if target_code is None else target_code  # (B, C, s, s)
             maps.append(goal.repeat_interleave(t, dim=0) - obs)
         return self._state(maps, joints.flatten(0, 1)).view(b, t, -1)
 
