@@ -203,11 +203,12 @@ class ClosedLoop:
         self.video = S.background_video(ep)
         self.reach = self.pick = self.diverged = self.gripper_closed = False
         self.steps = 0
+        self.state = None  # the robot's state at the last observation
 
     def observe(self, step: int) -> tuple:
         """What the policy gets at ``step``: (rgb, joints, hand, truth), as :meth:`Policy.act` takes them."""
         sim, ep = self.sim, self.ep
-        state = sim.robot.state()
+        self.state = state = sim.robot.state()
         truth = (sim.get_pose(ep.object)[0], ep.xy(ep.target)) if self.true_positions else None
         return (observe(sim, step, self.video), np.asarray(state.joints, dtype=np.float32),
                 np.asarray(state.ee_pos), truth)

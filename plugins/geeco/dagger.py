@@ -30,7 +30,7 @@ import numpy as np
 from physint_cli.errors import BadInput
 
 from . import scenes as S
-from .control import LOCKSTEP, Policy, act_together, observe, sims_for
+from .control import LOCKSTEP, ClosedLoop, Policy, act_together, sims_for
 from .dataset import empty_episode, record_step
 from .expert import Expert, on_target
 
@@ -73,33 +73,26 @@ def rollouts(sims: list, episodes: list[S.Episode], policies: list[Policy], targ
     ``on_target`` says whether the object ended on its target. None for an episode where the
     controller diverged."""
     resolution = targets[0].shape[0]
-    experts, outs, videos = [], [], []
-    for sim, ep, policy, target in zip(sims, episodes, policies, targets, strict=True):
-        sim.reset(S.build_scene(ep, resolution))
-        policy.reset(target)
-        experts.append(Expert(ep))
-        outs.append(empty_episode(horizon, resolution))
-        videos.append(S.background_video(ep))
-    live = list(range(len(sims)))
+    loops = [ClosedLoop(*args, resolution) for args in zip(sims, episodes, policies, targets, strict=True)]
+    experts = [Expert(ep) for ep in episodes]
+    outs = [empty_episode(horizon, resolution) for _ in episodes]
+    live = list(range(len(loops)))
     for t in range(horizon):
         if not live:
             break
-        observations, labels = [], []
-        for i in live:
-            sim, state, rgb = sims[i], sims[i].robot.state(), observe(sims[i], t, videos[i])
-            labels.append(experts[i].act(sim))
-            record_step(outs[i], t, sim, episodes[i], state, rgb, labels[-1])
-            observations.append((rgb, np.asarray(state.joints, dtype=np.float32), np.asarray(state.ee_pos), None))
+        observations = [loops[i].observe(t) for i in live]
+        labels = [experts[i].act(sims[i]) for i in live]  # the expert's command in the state reached
+        for i, observation, label in zip(live, observations, labels):
+            record_step(outs[i], t, sims[i], episodes[i], loops[i].state, observation[0], label)
         actions = act_together([policies[i] for i in live], observations)
         for i, label, action in zip(list(live), labels, actions):
-            if not np.all(np.isfinite(action)):
+            if np.all(np.isfinite(action)):
+                if beta > 0 and rngs[i].random() < beta:
+                    action = label
+                experts[i].follow(label, action)
+            if not loops[i].apply(action):  # diverged: no rollout
                 live.remove(i)
                 outs[i] = None
-                continue
-            if beta > 0 and rngs[i].random() < beta:
-                action = label
-            experts[i].follow(label, action)
-            sims[i].robot.act(action)
     for i in live:
         outs[i]["target"] = targets[i]
         outs[i]["goal"] = np.asarray(episodes[i].xy(episodes[i].target), np.float32)  # where the object belongs (x, y), m
