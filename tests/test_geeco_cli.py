@@ -336,12 +336,16 @@ def test_dagger_labels_the_states_a_controller_reaches_with_the_experts_commands
     still = type("Still", (), {"reset": lambda self, target: None, "act": lambda self, rgb, joints, hand=None, truth=None: np.zeros(4)})()
     with pb.make("mujoco", S.build_scene(ep, 32)) as sim:
         assert not rollouts([sim], [ep], [still], [demos["rgb"][0, -1]], 100)[0]["on_target"]
-        assert rollouts([sim], [ep], [still], [demos["rgb"][0, -1]], 100, beta=0.95,
-                        rngs=[np.random.default_rng(0)])[0]["on_target"]
+        alone = rollouts([sim], [ep], [still], [demos["rgb"][0, -1]], 100, beta=0.95, rngs=[np.random.default_rng(0)])[0]
+        assert alone["on_target"]
     # controllers that all diverge end their rollouts (None each), not the round
     nan = type("Nan", (), {"reset": lambda self, target: None, "act": lambda self, *a, **k: np.full(4, np.nan)})()
     with pb.make("mujoco", S.build_scene(ep, 32)) as a, pb.make("mujoco", S.build_scene(ep, 32)) as b:
         assert rollouts([a, b], [ep, ep], [nan, nan], [demos["rgb"][0, -1]] * 2, 5) == [None, None]
+        # beside one that diverges, a rollout draws its own coins and ends as it does alone
+        gone, kept = rollouts([a, b], [ep, ep], [nan, still], [demos["rgb"][0, -1]] * 2, 100, beta=0.95,
+                              rngs=[np.random.default_rng(1), np.random.default_rng(0)])
+        assert gone is None and all(np.array_equal(kept[k], alone[k]) for k in ("dee", "grip", "obj", "on_target"))
 
 
 def test_dagger_rounds_join_the_training_data_and_are_reloaded_on_resume(tiny_pipeline, tmp_path):

@@ -313,6 +313,10 @@ def test_controllers_acting_together_answer_as_each_alone(variant, head):
         a.reset(target)
         b.reset(target)
     for t in range(6):
+        if t == 3:  # one episode ends and the next begins while the others go on
+            target = rng.integers(0, 255, (32, 32, 3), dtype=np.uint8)
+            together[0].reset(target)
+            alone[0].reset(target)
         observations = [(rng.integers(0, 255, (32, 32, 3), dtype=np.uint8), rng.normal(size=7).astype(np.float32),
                          rng.uniform(-0.2, 0.2, 3) + [0, 0, 0.9], None) for _ in range(3)]
         actions = act_together(together, observations)

@@ -67,7 +67,7 @@ class Policy:
         self.buffer: deque = deque(maxlen=model.buffer)
         self.positions: deque = deque(maxlen=model.buffer)  # command="positions": (hand, object) per step
         self.target = None
-        self.target_code = None  # GEECO-R: psi_OBS(I_T), encoded at the episode's first step
+        self.target_code = None  # GEECO-R: psi_OBS(I_T), encoded at the episode's first step (set targets by reset)
         self.last: dict[str, Any] = {}
 
     def reset(self, target_rgb: np.ndarray | None) -> None:
@@ -147,14 +147,15 @@ def act_together(policies: list[Policy], observations: list[tuple]) -> list[np.n
         if model.variant == "geeco-f":  # encodes the whole buffer's dynamic image at every step
             items = frames
         else:  # per-frame variants keep each frame's state: one new frame is encoded per step
-            targets = torch.cat([p.target for p in policies]) if model.conditioned else None
-            codes = None
+            targets = codes = None
             if model.variant == "geeco-r":  # the target's encoding is the same all episode: encode it once
                 fresh = [p for p in policies if p.target_code is None]
                 if fresh:
                     for p, code in zip(fresh, model.target_code(torch.cat([p.target for p in fresh])).split(1)):
                         p.target_code = code
                 codes = torch.cat([p.target_code for p in policies])
+            elif model.conditioned:
+                targets = torch.cat([p.target for p in policies])
             items = model.frame_states(torch.cat(frames), torch.cat(joints), targets, codes).split(1)
         for policy, frame, x, item in zip(policies, frames, joints, items):
             policy._push(frame, x, item)
