@@ -344,10 +344,16 @@ def test_a_signal_during_an_optimiser_step_stops_training_after_it_and_loses_not
                                                                                      tmp_path, signum):
     """Ctrl-C or a SIGTERM (kill, a cluster's preemption) arriving mid-step lets the step finish,
     saves it and exits 130; the resumed run ends as if never stopped."""
-    handlers = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
-    _stop_in_epoch_2_and_resume(monkeypatch, tmp_path, lambda: os.kill(os.getpid(), signum),
-                                "at epoch 1, 5 batches into epoch 2")
-    assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == handlers  # put back
+    # Python's Ctrl-C handler, as in a terminal (a shell starting pytest in the background ignores
+    # SIGINT, and training leaves an ignored signal ignored)
+    outer = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        handlers = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
+        _stop_in_epoch_2_and_resume(monkeypatch, tmp_path, lambda: os.kill(os.getpid(), signum),
+                                    "at epoch 1, 5 batches into epoch 2")
+        assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == handlers  # put back
+    finally:
+        signal.signal(signal.SIGINT, outer)
 
 
 def test_the_seed_sets_the_initial_weights(toy_plugins, tmp_path):
