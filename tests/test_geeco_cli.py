@@ -81,7 +81,7 @@ def test_a_goal_in_words_and_the_target_image_it_made_give_the_same_start(tiny_p
     (["dataset", "geeco", "--set", "data.skill=fly"], "data.skill must be one of push, pickplace"),
     (["dataset", "geeco", "--set", "data.demos=2"], "data.demos must be >= 4"),
     (["dataset", "geeco", "--set", "data.action_noise=0.5"], "data.action_noise must be in [0, 0.02]"),
-    (["dataset", "geeco", "--set", "data.backgrounds=video"], "data.backgrounds must be one of plain, random"),
+    (["dataset", "geeco", "--set", "data.backgrounds=video"], "data.backgrounds must be one of plain, random, mixed"),
     (["train", "geeco", "--model", "geeco-x"], "geeco-x"),
 ])
 def test_bad_input_exits_2_with_one_line(args, message):
@@ -116,6 +116,21 @@ def test_random_backgrounds_are_recorded_with_their_seeds_and_replayed_wherever_
         plain = observe(sim, 0)
     assert (replayed == demos["rgb"][0, 0]).all()  # the first frame, background and all
     assert (replayed != plain).any(axis=-1).mean() > 0.03  # the background is not the plain one
+
+
+@pytest.mark.parametrize("n_tasks", [1, 2, 4])
+def test_mixed_backgrounds_give_half_of_each_tasks_demonstrations_a_random_one(n_tasks):
+    from physint_plugins.geeco.dataset import random_background
+
+    rounds = 6
+    drawn = np.array([[random_background("mixed", r * n_tasks + t, n_tasks) for t in range(n_tasks)]
+                      for r in range(rounds)])
+    assert (drawn.sum(axis=0) == rounds // 2).all()  # every task: half random, half plain
+    assert (drawn[1:] != drawn[:-1]).all()  # alternating from round to round
+    if n_tasks > 1:
+        assert (drawn.sum(axis=1) == n_tasks // 2).all()  # every round: half its tasks random
+    assert not any(random_background("plain", i, n_tasks) for i in range(12))
+    assert all(random_background("random", i, n_tasks) for i in range(12))
 
 
 def test_bad_targets_exit_2(tiny_pipeline, tmp_path):

@@ -27,10 +27,11 @@ class DataConfig:
     max_attempts: int = field_(30, "start states tried per demonstration before giving up")
     action_noise: float = field_(0.003, "std (m) of noise added to the executed hand displacements, not to the "
                                         "recorded commands (DART; the thesis: 0)")
-    backgrounds: str = field_("plain", "plain (the thesis) or random: each demonstration's background (what is not "
-                                       "table, robot or object) becomes a random colour field or bands, still or "
-                                       "drifting, so the controller learns to ignore it (domain randomisation, not in "
-                                       "the thesis; against BG:PRISMA)")
+    backgrounds: str = field_("plain", "plain (the thesis), random or mixed: with random each demonstration's "
+                                       "background (what is not table, robot or object) becomes a random colour field "
+                                       "or bands, still or drifting, so the controller learns to ignore it (domain "
+                                       "randomisation, not in the thesis; against BG:PRISMA); mixed: half of each "
+                                       "task's demonstrations random, half plain")
 
 
 @dataclass

@@ -7,7 +7,7 @@ commanded displacement u_dEE and gripper command u_GRP, and the positions of the
 of the object to move q_OBJ. Only demonstrations that succeed (the object rests on its target)
 with the hand parked before the end are kept: their last frame is the target image I_T. The
 start state (layout, task, seed, and the seed of the background video with
-``data.backgrounds=random``, else -1) is saved, so evaluation replays the test split's start states.
+``data.backgrounds=random`` or ``mixed``, else -1) is saved, so evaluation replays the test split's start states.
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ from .expert import Expert, on_target
 SPLITS = {"train": 2, "val": 1, "test": 1}  # 2:1:1
 GRIP_CLASS = {-1: 0, 0: 1, 1: 2}  # gripper command -> class id (open, no-op, close)
 SETTLE_STEPS = 4  # the hand must be parked this many steps before the demonstration ends
-BACKGROUNDS = ("plain", "random")
+BACKGROUNDS = ("plain", "random", "mixed")
 
 
 def split_counts(total: int) -> dict[str, int]:
@@ -113,7 +113,7 @@ def demonstrations(ctx: Context, unit: Unit, sim=None):
             rng = np.random.default_rng([unit.seed, k])
             for attempt in range(1, cfg.max_attempts + 1):
                 ep = S.sample_episode(ctx.scene, cfg.skill, task, rng)
-                if cfg.backgrounds == "random":
+                if random_background(cfg.backgrounds, index, len(tasks)):
                     ep.backdrop = int(rng.integers(2**31))
                 scene = S.build_scene(ep, cfg.resolution)
                 if sim is None:
@@ -131,6 +131,16 @@ def demonstrations(ctx: Context, unit: Unit, sim=None):
     finally:
         if own and sim is not None:
             sim.close()
+
+
+def random_background(backgrounds: str, index: int, n_tasks: int) -> bool:
+    """Whether demonstration ``index`` of a split gets a random background video: all of them with
+    ``random``, none with ``plain``, half with ``mixed``: each task's demonstrations alternate
+    between plain and random from one round of tasks to the next, and so do neighbouring tasks."""
+    if backgrounds != "mixed":
+        return backgrounds == "random"
+    round_, task = divmod(index, n_tasks)
+    return round_ % 2 != task % 2
 
 
 def generate(ctx: Context, unit: Unit) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
