@@ -250,6 +250,49 @@ def test_evaluation_gives_the_same_episodes_whatever_the_number_of_workers(tiny_
     assert episodes(tmp_path / "w2") == episodes(out / "eval")  # one worker ran the pipeline's evaluation
 
 
+def test_episodes_evaluated_side_by_side_act_and_end_as_one_at_a_time(tiny_pipeline, tmp_path, monkeypatch):
+    """eval.side_by_side steps a worker's episodes in lockstep: the same episodes with the same
+    target images (stored, or made by the expert in a transfer scene) get the same actions and end
+    where they end one at a time, up to a batch's float rounding."""
+    from physint_plugins.geeco.control import ClosedLoop
+
+    out, _ = tiny_pipeline
+    run = str(out / "train")
+    actions: dict[bytes, list] = {}  # each episode's actions, by its start state
+    apply = ClosedLoop.apply
+
+    def recording_apply(self, action):
+        actions.setdefault(self.ep.layout.tobytes(), []).append(np.array(action))
+        return apply(self, action)
+
+    monkeypatch.setattr(ClosedLoop, "apply", recording_apply)
+
+    def episodes(name, *args):
+        actions.clear()
+        code, stdout, err = call("eval", "geeco", "--run", run, "--set", "eval.per_unit=2", *args,
+                                 "--out", str(tmp_path / name), "--json")
+        assert code == 0, err
+        rows = [json.loads(line) for line in (tmp_path / name / "artifacts" / "episodes.jsonl").read_text().splitlines()]
+        return json.loads(stdout)["metrics"], rows, dict(actions)
+
+    for scene in ("goal2cube2", "clutter"):
+        m1, alone, acted_alone = episodes(f"{scene}1", "--scene", scene)
+        m2, together, acted_together = episodes(f"{scene}2", "--scene", scene, "--set", "eval.side_by_side=2")
+        assert (m1["side_by_side"], m2["side_by_side"]) == (1, 2) and m1["episodes"] >= 1
+        assert [r["index"] for r in together] == [r["index"] for r in alone] == [0, 1]
+        assert acted_alone.keys() == acted_together.keys() and len(acted_alone) == m1["episodes"]
+        for layout, seq in acted_alone.items():
+            # seen: 1e-9 apart (a batch's rounding); with the two targets swapped, 2e-5
+            assert np.abs(np.array(seq) - np.array(acted_together[layout])).max() < 1e-6, scene
+        for a, b in zip(alone, together):
+            assert a.get("task") == b.get("task") and a.get("no_target") == b.get("no_target")
+            if "final_xy" in a:
+                assert np.allclose(a["final_xy"], b["final_xy"], atol=2e-3), (scene, a, b)
+    code, _, err = call("eval", "geeco", "--run", run, "--set", "eval.side_by_side=3", "--set", "eval.per_unit=2",
+                        "--out", str(tmp_path / "bad"))
+    assert code == 2 and "eval.side_by_side must be in [1, eval.per_unit = 2], got 3" in err
+
+
 def test_evaluation_on_another_backend_and_on_a_transfer_scene(tiny_pipeline, tmp_path):
     out, _ = tiny_pipeline
     run = str(out / "train")

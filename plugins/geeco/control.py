@@ -266,11 +266,12 @@ def sims_for(sims: list, make_sim, episodes: list[S.Episode], resolution: int) -
 
 
 def run_episodes(sims: list, episodes: list[S.Episode], policies: list[Policy], targets: list, steps: int,
-                 resolution: int) -> list[dict[str, Any]]:
+                 resolution: int, true_positions: bool = False) -> list[dict[str, Any]]:
     """Episodes side by side, one simulation and one policy (of one model) each, stepped in lockstep
     so that their frames go through the network as one batch (:func:`act_together`); the results of
     :func:`run_episode`, each episode's ``seconds`` its share of the wall time."""
-    loops = [ClosedLoop(*args, resolution) for args in zip(sims, episodes, policies, targets, strict=True)]
+    loops = [ClosedLoop(*args, resolution, true_positions)
+             for args in zip(sims, episodes, policies, targets, strict=True)]
     live = list(range(len(loops)))
     t0 = time.perf_counter()
     for step in range(steps):
