@@ -85,7 +85,7 @@ class Steps:
 
     def train(self, key: str, out: Path, args: list[str]) -> Path:
         """A training step (an interrupted training goes on from its last checkpoint)."""
-        resume = ["--resume"] if (out / "run.json").exists() else []
+        resume = ["--resume", "--run", str(out)] if (out / "run.json").exists() else []
         self.run(key, (out / "metrics.json").exists(), ["train", *args, "--out", str(out), *resume])
         return out
 

@@ -150,7 +150,7 @@ def main(argv: list[str] | None = None) -> int:
                              thesis_text(THESIS.get((skill, model))), rates_text(m, LABELS[skill]), goal))
                 rows.append((f"{skill}: {name} control rate", "~20 Hz (GPU)", f"{m['control_hz']:.0f} Hz",
                              f">= {GOALS['hz']:.0f} Hz"))
-        if len(by_seed) > 1 and all((skill, model) in THESIS for model in by_seed):
+        if args.seeds > 1 and len(by_seed) > 1 and all((skill, model) in THESIS for model in by_seed):
             rows.append(order_row(skill, by_seed))
     if data_seconds:
         rows.append(("demonstrations of both skills: wall time", "-", minutes(data_seconds),
