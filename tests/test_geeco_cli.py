@@ -518,6 +518,14 @@ def test_automatic_dagger_rounds_are_for_positions_controllers_of_pushing(skill,
     assert parse_epochs("auto", epochs, skill, command) == rounds
     assert resolve_command("auto", skill) == ("positions" if skill == "push" else "network")
     assert resolve_command(command, skill) == command
+    assert resolve_command("auto", skill, aux_weight=0.0) == "network"  # lambda = 0: no positions learned
+
+
+def test_a_positions_controller_without_position_supervision_is_refused(tiny_pipeline, tmp_path):
+    out, _ = tiny_pipeline
+    code, _, err = call("train", "geeco", "--preset", "tiny", "--data", str(out / "dataset"), "--set",
+                        "train.command=positions", "--set", "train.aux_weight=0", "--out", str(tmp_path / "run"))
+    assert code == 2 and "train.aux_weight=0 leaves unlearned" in err and len(err.strip().splitlines()) == 1, err
 
 
 def test_the_paper_preset_keeps_the_thesiss_end_to_end_command():

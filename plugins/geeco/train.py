@@ -250,12 +250,13 @@ class ValidationLoss:
         return -total / max(n, 1)
 
 
-def resolve_command(command: str, skill: str, classified: bool = False) -> str:
+def resolve_command(command: str, skill: str, classified: bool = False, aux_weight: float = 1.0) -> str:
     """``train.command``: ``auto`` is positions for pushing (its end-to-end u_dEE pushed 14.5 % at the
     small preset's scale, docs/geeco.md) and network for pick-and-place (the thesis), or whenever
-    u_dEE is ``classified`` (``train.dee_bins`` or ``train.dee_modes`` read the network's u_dEE)."""
+    u_dEE is ``classified`` (``train.dee_bins`` or ``train.dee_modes`` read the network's u_dEE) or the
+    positions it would read are not learned (λ = ``aux_weight`` = 0 in Eq. 6.3, the thesis's ablation)."""
     if command == "auto":
-        return "positions" if skill == "push" and not classified else "network"
+        return "positions" if skill == "push" and not classified and aux_weight > 0 else "network"
     return command
 
 
@@ -290,12 +291,15 @@ def train(ctx: Context) -> dict[str, Any]:
         raise BadInput(f"train.readout must be one of {', '.join(READOUTS)}, got {cfg.readout!r}")
     if cfg.command not in (*COMMANDS, "auto"):
         raise BadInput(f"train.command must be one of {', '.join(COMMANDS)}, auto, got {cfg.command!r}")
-    command = resolve_command(cfg.command, skill, classified=bool(cfg.dee_bins or cfg.dee_modes))
+    command = resolve_command(cfg.command, skill, bool(cfg.dee_bins or cfg.dee_modes), cfg.aux_weight)
     if cfg.dee_modes and cfg.dee_bins:
         raise BadInput("train.dee_bins and train.dee_modes are two ways to read u_dEE: set one of them")
     if cfg.width <= 0 or cfg.lr <= 0 or cfg.aux_weight < 0 or cfg.val_episodes < 0 or cfg.command_epochs < 0:
         raise BadInput("train.width and train.lr must be > 0, train.aux_weight, train.val_episodes and "
                        "train.command_epochs >= 0")
+    if command == "positions" and cfg.aux_weight == 0:
+        raise BadInput("train.command=positions commands from the network's position estimates, which "
+                       "train.aux_weight=0 leaves unlearned (lambda of Eq. 6.3): use train.command=network or auto")
     if command == "positions" and (cfg.dee_bins or cfg.dee_modes):
         raise BadInput("train.command=positions regresses u_dEE from positions: not with train.dee_bins or train.dee_modes")
     rounds = parse_epochs(cfg.dagger_epochs, cfg.epochs, skill, command)
