@@ -1,7 +1,7 @@
 """GEECO (thesis Chapter 6) beside the thesis's numbers, with physint's own commands.
 
     python benchmarks/geeco.py [--preset small] [--home DIR] [--workers 2] [--models geeco-f,geeco-d,geeco-r]
-                               [--seeds 1] [--skip pickplace,goal1cube1,transfer,cross,commands]
+                               [--seeds 1] [--skip pickplace,goal1cube1,transfer,cross,commands,lambda0]
 
 Every step is a plain ``physint`` command run in its own process (printed as it starts); a step
 whose result is already under ``--home`` is not run again, so an interrupted benchmark resumes.
@@ -19,7 +19,10 @@ Steps, for each skill (push, pick-and-place) on GOAL2CUBE2:
 5. (``transfer``) the pick-and-place controllers in FG:CLUTTER, BG:PRISMA, NUTONCONE and BALLINCUP:
    Table 6.4.2;
 6. (``cross``) the pushing GEECO-F trained on this backend, evaluated on the others (not in the thesis);
-7. (``commands``) where the pushing GEECO-F's u_dEE comes from: the small preset's controller takes it
+7. (``lambda0``) Table 6.4.1's ablation without position supervision: each model and skill trained with
+   lambda = 0 in Eq. 6.3 (``--set train.aux_weight=0``; pushing then commands from the network, as
+   nothing learns positions), beside the thesis's lambda = 0 rows;
+8. (``commands``) where the pushing GEECO-F's u_dEE comes from: the small preset's controller takes it
    from positions (``train.command=auto``, with DAgger rounds; not in the thesis), here also evaluated
    on the simulator's positions, beside a GEECO-F with the thesis's end-to-end command
    (``--set train.command=network``). A preset whose controller is end-to-end (paper) skips this.
@@ -43,6 +46,12 @@ THESIS = {
     ("pickplace", "geeco-f"): (94.80, 78.40, 46.30),
     ("goal1cube1-push", "e2evmc"): (95.20, 58.60), ("goal1cube1-push", "geeco-f"): (99.20, 72.90),
 }
+# Table 6.4.1 without position supervision (lambda = 0)
+THESIS_LAMBDA0 = {
+    ("push", "geeco-r"): (98.70, 79.80), ("push", "geeco-d"): (98.70, 88.50), ("push", "geeco-f"): (98.00, 78.60),
+    ("pickplace", "geeco-r"): (86.20, 58.90, 42.50), ("pickplace", "geeco-d"): (95.40, 65.80, 54.20),
+    ("pickplace", "geeco-f"): (92.70, 71.00, 45.60),
+}
 # Table 6.4.2, pick-and-place: (REACH, PICK, PLACE) in %
 TRANSFER = {
     ("clutter", "geeco-r"): (63.80, 29.40, 15.80), ("clutter", "geeco-d"): (77.00, 42.10, 20.70),
@@ -55,7 +64,7 @@ TRANSFER = {
 LABELS = {"push": ("REACH", "PUSH"), "pickplace": ("REACH", "PICK", "PLACE")}
 # the thesis's end-to-end command, beside the small preset's push controller commanded from positions
 END_TO_END = ["--set", "train.command=network"]
-STEPS = ("push", "pickplace", "goal1cube1", "transfer", "cross", "commands")
+STEPS = ("push", "pickplace", "goal1cube1", "transfer", "cross", "lambda0", "commands")
 # the models that see dynamic images, which the thesis finds above GEECO-R (Table 6.4.1)
 ABOVE_R = ("geeco-f", "geeco-d")
 GOALS = {"data_min": 15.0, "train_min": 45.0, "hz": 50.0,
@@ -182,6 +191,19 @@ def main(argv: list[str] | None = None) -> int:
             figures[f"push-geeco-f-on-{other}"] = m
             rows.append((f"push: geeco-f trained on {args.backend}, run on {other}", "not in the thesis",
                          rates_text(m, LABELS["push"]), f"{m['no_target']} without a target"))
+
+    if "lambda0" not in skip:
+        for skill in ("push", "pickplace"):
+            if skill in skip:
+                continue
+            data = dataset(skill, "goal2cube2", skill)
+            for model in models:
+                run = train(f"{skill}-lambda0", data, model, "--set", "train.aux_weight=0")
+                m = evaluate(f"{skill}-lambda0-{model}", run)
+                figures[f"{skill}-lambda0-{model}"] = m
+                rows.append((f"{skill}: {model}, lambda = 0, {' / '.join(LABELS[skill])} % (Table 6.4.1)",
+                             thesis_text(THESIS_LAMBDA0.get((skill, model))), rates_text(m, LABELS[skill]),
+                             f"training {minutes(b.times.get(f'train-{skill}-lambda0-{model}'))}"))
 
     push_f = trained.get(("push", "geeco-f"))
     if "commands" not in skip and push_f is not None and metrics(push_f).get("command") == "positions":
