@@ -88,9 +88,10 @@ class EvalConfig:
                                     "object's and the target's positions) or true (the simulator's: what the command "
                                     "head does with perfect perception)")
     side_by_side: int = field_(1, "episodes a worker steps in lockstep, their frames through the network as one "
-                                  "batch (at most eval.per_unit): 2-3x faster on a CPU, the same episodes up to a "
-                                  "batch's float rounding; control_hz is then the steps per second of them all, not "
-                                  "one controller's rate (1: one at a time, the control rate)")
+                                  "batch (at most eval.per_unit): 1.5x faster on 2 CPU cores, but a batch's float "
+                                  "rounding, amplified over the closed loop, changes single episodes' outcomes "
+                                  "(docs/geeco.md); control_hz is then the steps per second of them all, not one "
+                                  "controller's rate (1: one at a time, the control rate; the reported figures)")
 
 
 @dataclass
