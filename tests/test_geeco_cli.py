@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 from pathlib import Path
 
@@ -181,8 +182,9 @@ def test_a_diverging_controller_fails_its_episode_without_stopping_the_evaluatio
 
 
 def test_episodes_side_by_side_end_as_each_alone_and_a_diverging_one_leaves_the_others_running():
-    """``run_episodes`` steps episodes in lockstep (training's validation): each ends as it would
-    alone, and one whose controller diverges stops there while the others go on."""
+    """``run_episodes`` steps episodes in lockstep (training's validation): each sees the same
+    frames and ends as it would alone (lockstep and reused simulations change nothing but the
+    network's batch), and one whose controller diverges stops there while the others go on."""
     import physint_backends as pb
     from physint_plugins.geeco.control import run_episode, run_episodes
 
@@ -190,8 +192,8 @@ def test_episodes_side_by_side_end_as_each_alone_and_a_diverging_one_leaves_the_
            for i, task in enumerate([(0, 0), (1, 1), (0, 1)])]
     sims = [pb.make("mujoco", S.build_scene(ep, 32)) for ep in eps]
     try:
-        alone = [run_episode(sim, ep, _ExpertWithDetour(sim, ep, detour=0), None, 100, 32)
-                 for sim, ep in zip(sims, eps)]
+        experts = [_ExpertWithDetour(sim, ep, detour=0) for sim, ep in zip(sims, eps)]
+        alone = [run_episode(sim, ep, expert, None, 100, 32) for sim, ep, expert in zip(sims, eps, experts)]
         stand_ins = [_ExpertWithDetour(sim, ep, detour=0) for sim, ep in zip(sims, eps)]
         stand_ins[1].act = lambda *args: np.array([np.nan, 0.0, 0.0, 0.0]) if stand_ins[1].t > 9 else \
             _ExpertWithDetour.act(stand_ins[1], *args)
@@ -203,6 +205,7 @@ def test_episodes_side_by_side_end_as_each_alone_and_a_diverging_one_leaves_the_
     for i in (0, 2):
         assert together[i]["success"] and together[i]["steps"] == 100
         assert together[i]["final_xy"] == alone[i]["final_xy"]
+        assert stand_ins[i].frames == experts[i].frames and len(set(experts[i].frames)) > 10  # every pixel
     assert together[1]["diverged"] and together[1]["steps"] == 11 and not together[1]["success"]
 
 
@@ -357,11 +360,13 @@ class _ExpertWithDetour:
         from physint_plugins.geeco.expert import Expert
 
         self.sim, self.expert, self.detour, self.t, self.commands = sim, Expert(ep), detour, 0, []
+        self.frames: list[str] = []  # a digest of each frame it saw
 
     def reset(self, target):
         pass
 
     def act(self, rgb, joints, hand=None, truth=None):
+        self.frames.append(hashlib.sha1(np.ascontiguousarray(rgb).tobytes()).hexdigest())
         action = self.expert.act(self.sim)
         self.commands.append(action.copy())
         if self.t < self.detour:
