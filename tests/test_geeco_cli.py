@@ -308,6 +308,12 @@ def test_evaluation_on_another_backend_and_on_a_transfer_scene(tiny_pipeline, tm
         assert metrics["episodes"] + metrics["no_target"] == 1 and metrics["trained_on"]["backend"] == "mujoco"
     code, _, err = call("eval", "geeco", "--run", run, "--scene", "nutoncone", "--out", str(tmp_path / "nut"))
     assert code == 2 and "pick-and-place transfer task" in err
+    # --episodes sets how many (the tiny preset's eval.episodes is 2)
+    code, stdout, err = call("eval", "geeco", "--run", run, "--episodes", "1", "--set", "eval.steps=10", "--out",
+                             str(tmp_path / "one"), "--json")
+    assert code == 0 and json.loads(stdout)["metrics"]["episodes"] == 1, err
+    code, _, err = call("eval", "geeco", "--run", run, "--episodes", "0", "--out", str(tmp_path / "none"))
+    assert code == 2 and "eval.episodes (--episodes)" in err and "got 0" in err
 
 
 def test_tiny_pipeline_on_robosuite(tmp_path):

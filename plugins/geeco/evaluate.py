@@ -153,8 +153,11 @@ def evaluate(ctx: Context) -> dict[str, Any]:
 
     _, meta = load_controller(ctx.source_run)
     cfg = ctx.config.eval
+    if ctx.options.get("episodes") is not None:  # --episodes N is eval.episodes=N
+        cfg.episodes = ctx.options["episodes"]
     if cfg.episodes < 1 or cfg.steps < 1 or cfg.per_unit < 1:
-        raise BadInput("eval.episodes, eval.steps and eval.per_unit must be >= 1")
+        raise BadInput(f"eval.episodes (--episodes), eval.steps and eval.per_unit must be >= 1, got "
+                       f"{cfg.episodes}, {cfg.steps}, {cfg.per_unit}")
     if not 1 <= cfg.side_by_side <= cfg.per_unit:
         raise BadInput(f"eval.side_by_side must be in [1, eval.per_unit = {cfg.per_unit}], got {cfg.side_by_side}")
     if cfg.positions not in POSITIONS:
