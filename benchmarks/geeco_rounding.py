@@ -29,10 +29,11 @@ import json
 import sys
 import tempfile
 import time
-from math import comb
 from pathlib import Path
+from unittest.mock import patch
 
 import numpy as np
+from scipy.stats import binomtest
 
 import physint_cli.cli as cli
 import physint_cli.training as training
@@ -42,26 +43,15 @@ from physint_cli.cli import run as physint
 STEP_RANGES = ((0, 1), (1, 10), (10, 50), (50, 100), (100, 200))
 
 
-def evaluate(run: str, out: Path, *args: str) -> tuple[dict, dict[int, dict]]:
-    """``physint eval geeco --run RUN ARGS``, in this process: its metrics and its episodes by index."""
+def evaluate(run: str, out: Path, *args: str) -> dict[int, dict]:
+    """``physint eval geeco --run RUN ARGS``, in this process: its episodes by index."""
     out.mkdir(parents=True, exist_ok=True)
-    with patched(cli, "_RESULTS", io.StringIO()):  # its printed result: the run's files are read below
+    with patch.object(cli, "_RESULTS", io.StringIO()):  # its printed result: the run's files are read below
         code = physint(["eval", "geeco", "--run", run, "--out", str(out), "--quiet", "--json", *args])
     if code != 0:
         sys.exit(f"physint eval geeco {' '.join(args)} failed ({code})")
     rows = [json.loads(line) for line in (out / "artifacts" / "episodes.jsonl").read_text().splitlines()]
-    metrics = json.loads((out / "metrics.json").read_text())
-    return metrics, {r["index"]: r for r in rows if "success" in r}
-
-
-@contextlib.contextmanager
-def patched(module, name: str, value):
-    saved = getattr(module, name)
-    setattr(module, name, value)
-    try:
-        yield
-    finally:
-        setattr(module, name, saved)
+    return {r["index"]: r for r in rows if "success" in r}
 
 
 def shadow(run: str, out: Path, episodes: int, side_by_side: int) -> list[tuple[int, float]]:
@@ -85,24 +75,21 @@ def shadow(run: str, out: Path, episodes: int, side_by_side: int) -> list[tuple[
             step[0] += 1
         return actions
 
-    with patched(control, "act_together", checked):
+    with patch.object(control, "act_together", checked):
         evaluate(run, out, "--workers", "1", "--set", f"eval.side_by_side={side_by_side}",
                  "--episodes", str(episodes))
     return diffs
 
 
-@contextlib.contextmanager
 def two_threads():
     """The network on two torch threads where evaluation asks for one."""
     one_thread = training.torch_threads
-    with patched(training, "torch_threads", lambda n: one_thread(2)):
-        yield
+    return patch.object(training, "torch_threads", lambda n: one_thread(2))
 
 
 def mcnemar(b: int, c: int) -> float:
-    """Exact two-sided McNemar p for b and c discordant pairs."""
-    n = b + c
-    return 1.0 if n == 0 else min(1.0, 2 * sum(comb(n, i) for i in range(min(b, c) + 1)) / 2 ** n)
+    """Exact two-sided McNemar p for b and c discordant pairs (a binomial test of b in b + c at 1/2)."""
+    return 1.0 if b + c == 0 else binomtest(b, b + c, 0.5).pvalue
 
 
 def main() -> None:
@@ -125,7 +112,7 @@ def main() -> None:
             print(f"| {lo}-{hi - 1} | {sel.max():.1e} | {np.median(sel):.1e} |")
 
     common = ["--episodes", str(args.episodes)]
-    runs: dict[str, tuple[dict, dict[int, dict], float]] = {}
+    runs: dict[str, tuple[dict[int, dict], float]] = {}
     for name, extra, context in (
             ("one at a time, 1 thread", ["--workers", "2"], contextlib.nullcontext()),
             (f"{args.side_by_side} side by side, 1 thread",
@@ -133,15 +120,15 @@ def main() -> None:
             ("one at a time, 2 threads", ["--workers", "1"], two_threads())):
         t0 = time.perf_counter()
         with context:
-            metrics, episodes = evaluate(args.run, out / name.replace(" ", "_").replace(",", ""), *common, *extra)
-        runs[name] = (metrics, episodes, time.perf_counter() - t0)
+            episodes = evaluate(args.run, out / name.replace(" ", "_").replace(",", ""), *common, *extra)
+        runs[name] = (episodes, time.perf_counter() - t0)
 
     first = next(iter(runs))
     print(f"\noutcomes of {args.episodes} test episodes (runs under {out})")
     print("| evaluation | seconds | REACH | success | only the first / only the second, against "
           f"'{first}' | exact McNemar p |\n|---|---|---|---|---|---|")
-    base = runs[first][1]
-    for name, (_, episodes, seconds) in runs.items():
+    base = runs[first][0]
+    for name, (episodes, seconds) in runs.items():
         reach = sum(bool(r["reach"]) for r in episodes.values())
         success = sum(bool(r["success"]) for r in episodes.values())
         row = f"| {name} | {seconds:.0f} | {reach} | {success} |"
