@@ -1,7 +1,7 @@
 """GEECO (thesis Chapter 6) beside the thesis's numbers, with physint's own commands.
 
     python benchmarks/geeco.py [--preset small] [--home DIR] [--workers 2] [--models geeco-f,geeco-d,geeco-r]
-                               [--seeds 1] [--skip pickplace,goal1cube1,transfer,cross,commands,lambda0]
+                               [--seeds 1] [--skip pickplace,goal1cube1,transfer,backgrounds,cross,commands,lambda0]
 
 Every step is a plain ``physint`` command run in its own process (printed as it starts); a step
 whose result is already under ``--home`` is not run again, so an interrupted benchmark resumes.
@@ -18,11 +18,15 @@ Steps, for each skill (push, pick-and-place) on GOAL2CUBE2:
 4. (``goal1cube1``) GOAL1CUBE1 with E2EVMC beside GEECO-F: Table 6.C.1;
 5. (``transfer``) the pick-and-place controllers in FG:CLUTTER, BG:PRISMA, NUTONCONE and BALLINCUP:
    Table 6.4.2;
-6. (``cross``) the pushing GEECO-F trained on this backend, evaluated on the others (not in the thesis);
-7. (``lambda0``) Table 6.4.1's ablation without position supervision: each model and skill trained with
+6. (``backgrounds``) pick-and-place controllers trained on demonstrations with random backgrounds
+   (``--set data.backgrounds=mixed``; not in the thesis, which trained on the plain table only),
+   evaluated on their own test split, on plain GOAL2CUBE2 (``--data`` the plain dataset) and in
+   BG:PRISMA, beside the controllers trained on the plain table;
+7. (``cross``) the pushing GEECO-F trained on this backend, evaluated on the others (not in the thesis);
+8. (``lambda0``) Table 6.4.1's ablation without position supervision: each model and skill trained with
    lambda = 0 in Eq. 6.3 (``--set train.aux_weight=0``; pushing then commands from the network, as
    nothing learns positions), beside the thesis's lambda = 0 rows;
-8. (``commands``) where the pushing GEECO-F's u_dEE comes from: the small preset's controller takes it
+9. (``commands``) where the pushing GEECO-F's u_dEE comes from: the small preset's controller takes it
    from positions (``train.command=auto``, with DAgger rounds; not in the thesis), here also evaluated
    on the simulator's positions, beside a GEECO-F with the thesis's end-to-end command
    (``--set train.command=network``). A preset whose controller is end-to-end (paper) skips this.
@@ -64,7 +68,7 @@ TRANSFER = {
 LABELS = {"push": ("REACH", "PUSH"), "pickplace": ("REACH", "PICK", "PLACE")}
 # the thesis's end-to-end command, beside the small preset's push controller commanded from positions
 END_TO_END = ["--set", "train.command=network"]
-STEPS = ("push", "pickplace", "goal1cube1", "transfer", "cross", "lambda0", "commands")
+STEPS = ("push", "pickplace", "goal1cube1", "transfer", "backgrounds", "cross", "lambda0", "commands")
 # the models that see dynamic images, which the thesis finds above GEECO-R (Table 6.4.1)
 ABOVE_R = ("geeco-f", "geeco-d")
 GOALS = {"data_min": 15.0, "train_min": 45.0, "hz": 50.0,
@@ -118,9 +122,9 @@ def main(argv: list[str] | None = None) -> int:
                      "machine": machine()}
     w = ["--workers", str(args.workers)]
 
-    def dataset(name: str, scene: str, skill: str) -> Path:
+    def dataset(name: str, scene: str, skill: str, *extra: str) -> Path:
         return b.dataset(f"dataset-{name}", b.home / f"data-{name}",
-                         ["geeco", "--scene", scene, "--backend", args.backend, "--set", f"data.skill={skill}"])
+                         ["geeco", "--scene", scene, "--backend", args.backend, "--set", f"data.skill={skill}", *extra])
 
     def train(name: str, data: Path, model: str, *extra: str, seed: int = 0) -> Path:
         key = f"train-{name}-{model}" + (f"-seed{seed}" if seed else "")  # seed 0 keeps the names of 1-seed homes
@@ -182,6 +186,27 @@ def main(argv: list[str] | None = None) -> int:
                 rows.append((f"{scene}: {model} REACH / PICK / PLACE % (Table 6.4.2)",
                              thesis_text(TRANSFER.get((scene, model))), rates_text(m, LABELS["pickplace"]),
                              f"{m['no_target']} without a target"))
+
+    if "backgrounds" not in skip and "pickplace" not in skip:
+        plain = dataset("pickplace", "goal2cube2", "pickplace")
+        mixed = dataset("pickplace-mixed", "goal2cube2", "pickplace", "--set", "data.backgrounds=mixed")
+        for model in models:
+            run = train("pickplace-mixed", mixed, model)
+            # (where, its key, eval options, thesis figures, the same model trained on the plain table there)
+            for where, on, extra, thesis, plain_key in (
+                    ("random backgrounds", "random", (), None, None),
+                    ("GOAL2CUBE2", "plain", ("--data", str(plain)), THESIS.get(("pickplace", model)),
+                     f"pickplace-{model}"),
+                    ("BG:PRISMA", "prisma", ("--scene", "prisma"), TRANSFER.get(("prisma", model)), f"prisma-{model}")):
+                key = f"pickplace-mixed-{model}-on-{on}"
+                m = evaluate(key, run, *extra)
+                figures[key] = m
+                trained_plain = figures.get(plain_key)
+                rows.append((f"pickplace: {model} trained on random backgrounds, in {where}, REACH / PICK / PLACE %",
+                             "not in the thesis" if thesis is None else thesis_text(thesis),
+                             rates_text(m, LABELS["pickplace"]),
+                             "-" if trained_plain is None
+                             else f"trained on the plain table: {rates_text(trained_plain, LABELS['pickplace'])}"))
 
     if "cross" not in skip and "push" not in skip and "geeco-f" in models:
         for other in ("mujoco", "pybullet", "robosuite"):
