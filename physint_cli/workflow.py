@@ -278,6 +278,9 @@ def _trained(opts: Options, verb: str) -> tuple[Run | None, dict[str, Any]]:
 def _run_verb(verb: str, opts: Options) -> dict[str, Any]:
     source, base = _trained(opts, verb)
     method, ctx = make_context(opts, base)
+    section = getattr(ctx.config, verb, None)
+    if opts.episodes is not None and hasattr(section, "episodes"):
+        section.episodes = opts.episodes  # --episodes N is {verb}.episodes=N, so the run's config.yaml records it
     data = opts.data or (Path(base["data"]) if base.get("data") else None)
     ctx = ctx.with_(source_run=source.path if source else None, data=Path(data) if data else None)
     run = Run.create(verb, ctx, configs.to_dict(ctx.config), opts.out)

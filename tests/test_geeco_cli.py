@@ -70,8 +70,9 @@ def test_a_goal_in_words_and_the_target_image_it_made_give_the_same_start(tiny_p
     assert json.loads(stdout)["metrics"]["task"] == "red cube onto blue pad"
     image = tmp_path / "a" / "artifacts" / "target.png"
     code, stdout, err = call("deploy", "geeco", "--run", run, "--target", str(image), "--seed", "3",
-                             "--out", str(tmp_path / "b"), "--json")
+                             "--episodes", "3", "--out", str(tmp_path / "b"), "--json")
     assert code == 0, err
+    assert "geeco deploy runs one episode" in err  # --episodes is not silently dropped
     import imageio.v3 as iio
 
     assert np.array_equal(iio.imread(tmp_path / "b" / "artifacts" / "target.png"), iio.imread(image))
@@ -312,6 +313,9 @@ def test_evaluation_on_another_backend_and_on_a_transfer_scene(tiny_pipeline, tm
     code, stdout, err = call("eval", "geeco", "--run", run, "--episodes", "1", "--set", "eval.steps=10", "--out",
                              str(tmp_path / "one"), "--json")
     assert code == 0 and json.loads(stdout)["metrics"]["episodes"] == 1, err
+    import yaml
+
+    assert yaml.safe_load((tmp_path / "one" / "config.yaml").read_text())["config"]["eval"]["episodes"] == 1
     code, _, err = call("eval", "geeco", "--run", run, "--episodes", "0", "--out", str(tmp_path / "none"))
     assert code == 2 and "eval.episodes (--episodes)" in err and "got 0" in err
 

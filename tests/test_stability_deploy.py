@@ -180,7 +180,7 @@ def test_deploy_runs_every_task_with_a_fake_predictor_and_writes_its_artifacts(t
     for per in stack["scenarios"].values():
         for agent in ("predictor", "oracle", "random"):
             assert len(per[agent]["heights"]) == 1 and sum(per[agent]["histogram"]) == 1
-    balance = D.deploy(make_ctx(tmp_path, "balance", sets, agents="predictor,oracle,random", episodes=2))
+    balance = D.deploy(make_ctx(tmp_path, "balance", [*sets, "deploy.episodes=2"], agents="predictor,oracle,random"))
     assert balance["episodes"] == 2 and set(balance["counterweights"]) == set(D.COUNTERWEIGHTS)
     assert balance["counterweights"]["sphere"]["none"]["episodes"] == 2
     ranked = D.deploy(make_ctx(tmp_path, "stackability", sets, agents="predictor,oracle"))

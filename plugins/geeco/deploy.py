@@ -71,6 +71,9 @@ def deploy(ctx: Context) -> dict[str, Any]:
 
     model, meta = load_controller(ctx.source_run, ctx.device)
     skill, resolution = meta["skill"], model.image_size
+    if ctx.options.get("episodes") not in (None, 1):
+        ctx.log("geeco deploy runs one episode toward one target (--seed picks the start state); "
+                "--episodes counts the episodes of physint eval geeco")
     target_arg = ctx.options.get("target")
     tasks = S.tasks(ctx.scene)
     image_file = target_arg is not None and Path(target_arg).suffix.lower() in (".png", ".jpg", ".jpeg", ".bmp")

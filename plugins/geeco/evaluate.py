@@ -152,9 +152,7 @@ def evaluate(ctx: Context) -> dict[str, Any]:
     from .train import load_controller
 
     _, meta = load_controller(ctx.source_run)
-    cfg = ctx.config.eval
-    if ctx.options.get("episodes") is not None:  # --episodes N is eval.episodes=N
-        cfg.episodes = ctx.options["episodes"]
+    cfg = ctx.config.eval  # --episodes N arrives as eval.episodes=N
     if cfg.episodes < 1 or cfg.steps < 1 or cfg.per_unit < 1:
         raise BadInput(f"eval.episodes (--episodes), eval.steps and eval.per_unit must be >= 1, got "
                        f"{cfg.episodes}, {cfg.steps}, {cfg.per_unit}")

@@ -1324,10 +1324,9 @@ def deploy(ctx: Context) -> dict[str, Any]:
     task = ctx.options.get("task") or "stackability"
     if task not in TASKS:
         raise unknown("deploy task for stability", task, TASKS)
-    episodes = ctx.options.get("episodes")
-    episodes = int(ctx.config.deploy.episodes if episodes is None else episodes)
+    episodes = int(ctx.config.deploy.episodes)  # --episodes N arrives as deploy.episodes=N
     if episodes < 1:
-        raise BadInput(f"--episodes must be >= 1, got {episodes}")
+        raise BadInput(f"deploy.episodes (--episodes) must be >= 1, got {episodes}")
     pool_key = "stackability_pool" if task == "stackability" else "pool"
     pool_size = getattr(ctx.config.deploy, pool_key)
     if pool_size < 2 and task != "balance":
