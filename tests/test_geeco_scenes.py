@@ -207,6 +207,40 @@ def test_a_strided_stem_gives_a_128_px_frame_the_maps_of_a_64_px_one():
     assert maps(128, 1)[0] == (8, 128, 128)  # Table 6.A.1: the first layer keeps the frame's size
 
 
+def test_the_paper_preset_builds_table_6a1s_controller_at_256_px_and_learns_with_adam_at_1e_4():
+    """The paper preset (the thesis's configuration, meant for a GPU) runs here too: its GEECO-F
+    (full width, 256 px frames, Table 6.A.1's strides down to 2x2 maps, flattened into the LSTM)
+    answers a batch, and Adam at 1e-4 lowers Eq. 6.3's loss on it."""
+    from physint_cli import config as configs
+    from physint_plugins.geeco.config import PRESETS, GeecoConfig
+    from physint_plugins.geeco.model import ENCODER_FILTERS, feature_shape, geeco_loss
+    from physint_plugins.geeco.train import build_model
+
+    cfg = configs.resolve(GeecoConfig, PRESETS, "paper", None, [])
+    t = cfg.train
+    assert (cfg.data.resolution, t.width, t.readout, t.lr, t.batch_size) == (256, 1.0, "flatten", 1e-4, 32)
+    assert feature_shape(256, t.width, t.min_side, t.stem_stride) == (ENCODER_FILTERS[-1], 2)
+    torch.manual_seed(0)
+    model, _ = build_model("geeco-f", cfg.data.resolution, t.width, t.norm, t.min_side, t.stem_stride, t.dee_bins,
+                           t.dee_modes, t.readout, t.command)
+    g = torch.Generator().manual_seed(1)
+    frames, target = torch.rand(2, 4, 3, 256, 256, generator=g), torch.rand(2, 3, 256, 256, generator=g)
+    joints = torch.randn(2, 4, 7, generator=g)
+    batch = {"dee": torch.randn(2, 1, 3, generator=g), "grip": torch.tensor([[0], [2]]),
+             "ee": torch.randn(2, 1, 3, generator=g), "obj": torch.randn(2, 1, 3, generator=g)}
+    optimizer = torch.optim.Adam(model.parameters(), lr=t.lr)
+    losses = []
+    for _ in range(4):
+        out = model(frames, joints, target)
+        assert out["dee"].shape == (2, 1, 3) and out["grip"].shape == (2, 1, 3)
+        loss, _ = geeco_loss(out, batch, t.aux_weight)
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+        losses.append(loss.item())
+    assert all(np.isfinite(losses)) and losses[-1] < losses[0], losses
+
+
 @pytest.mark.parametrize("variant", ["geeco-f", "geeco-d", "geeco-r", "e2evmc"])
 @pytest.mark.parametrize("min_side,stem_stride", [(1, 1), (4, 1), (1, 2)])
 def test_a_chunk_answers_each_window_as_the_window_alone_would(variant, min_side, stem_stride):
