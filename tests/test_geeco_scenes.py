@@ -221,8 +221,7 @@ def test_the_paper_preset_builds_table_6a1s_controller_at_256_px_and_learns_with
     assert (cfg.data.resolution, t.width, t.readout, t.lr, t.batch_size) == (256, 1.0, "flatten", 1e-4, 32)
     assert feature_shape(256, t.width, t.min_side, t.stem_stride) == (ENCODER_FILTERS[-1], 2)
     torch.manual_seed(0)
-    model, _ = build_model("geeco-f", cfg.data.resolution, t.width, t.norm, t.min_side, t.stem_stride, t.dee_bins,
-                           t.dee_modes, t.readout, t.command)
+    model, _ = build_model("geeco-f", cfg.data.resolution, t, t.command)
     g = torch.Generator().manual_seed(1)
     frames, target = torch.rand(2, 4, 3, 256, 256, generator=g), torch.rand(2, 3, 256, 256, generator=g)
     joints = torch.randn(2, 4, 7, generator=g)

@@ -28,15 +28,14 @@ FIELDS = ["rgb", "joints", "ee", "obj", "dee", "grip", "layout", "task", "seed"]
 OPTIONAL_FIELDS = ["backdrop"]  # not in datasets recorded before data.backgrounds
 
 
-def build_model(name: str, image_size: int, width: float, norm: bool = False, min_side: int = 1,
-                stem_stride: int = 1, dee_bins: int = 0, dee_modes: int = 0, readout: str = "flatten",
-                command: str = "network"):
-    """A registered GEECO model (``register_models``)."""
+def build_model(name: str, image_size: int, cfg, command: str = "network"):
+    """A registered GEECO model (``register_models``) as the ``train`` config section ``cfg`` describes it,
+    with the resolved ``command`` (``train.command=auto`` resolved by ``resolve_command``)."""
     from physint_cli.training import registered_model
 
-    kwargs = {"image_size": int(image_size), "width": float(width), "norm": bool(norm), "min_side": int(min_side),
-              "stem_stride": int(stem_stride), "dee_bins": int(dee_bins), "dee_modes": int(dee_modes),
-              "readout": str(readout), "command": str(command)}
+    kwargs = {"image_size": int(image_size), "width": float(cfg.width), "norm": bool(cfg.norm),
+              "min_side": int(cfg.min_side), "stem_stride": int(cfg.stem_stride), "dee_bins": int(cfg.dee_bins),
+              "dee_modes": int(cfg.dee_modes), "readout": str(cfg.readout), "command": str(command)}
     return registered_model("geeco", name).build(**kwargs), kwargs
 
 
@@ -307,8 +306,7 @@ def train(ctx: Context) -> dict[str, Any]:
         raise BadInput(f"train.dagger_episodes must be >= 1, got {cfg.dagger_episodes}")
     if not 0 <= cfg.dagger_beta < 1:
         raise BadInput(f"train.dagger_beta must be in [0, 1), got {cfg.dagger_beta}")
-    model, kwargs = build_model(name, data_cfg["resolution"], cfg.width, cfg.norm, cfg.min_side, cfg.stem_stride,
-                                cfg.dee_bins, cfg.dee_modes, cfg.readout, command)
+    model, kwargs = build_model(name, data_cfg["resolution"], cfg, command)
     train_demos, val_demos = load_split(ctx.data, "train"), load_split(ctx.data, "val")
     if command == "positions":
         for demos in (train_demos, val_demos):
