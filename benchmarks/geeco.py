@@ -142,6 +142,13 @@ def main(argv: list[str] | None = None) -> int:
     def evaluate(key: str, run: Path, *extra: str) -> dict:
         return b.verb(f"eval-{key}", b.home / f"eval-{key}", ["eval", "geeco", "--run", str(run), *w, *extra])
 
+    def trained_row(name: str, data: Path, model: str, labels: tuple[str, ...], label: str, thesis, *extra: str):
+        """Train ``model`` on ``data`` (with ``extra`` options), evaluate it, and add its row with its training time."""
+        m = evaluate(f"{name}-{model}", train(name, data, model, *extra))
+        figures[f"{name}-{model}"] = m
+        rows.append((label, thesis_text(thesis), rates_text(m, labels),
+                     f"training {minutes(b.times.get(f'train-{name}-{model}'))}"))
+
     data_seconds = 0.0
     trained: dict[tuple[str, str], Path] = {}
     for skill in ("push", "pickplace"):
@@ -183,12 +190,9 @@ def main(argv: list[str] | None = None) -> int:
                 continue
             data = dataset(f"goal1cube1-{skill}", "goal1cube1", skill)
             for model in ("e2evmc", *(m for m in models if m != "e2evmc")):
-                run = train(f"goal1cube1-{skill}", data, model)
-                m = evaluate(f"goal1cube1-{skill}-{model}", run)
-                figures[f"goal1cube1-{skill}-{model}"] = m
-                rows.append((f"GOAL1CUBE1 {skill}: {model} {' / '.join(LABELS[skill])} % (Table 6.C.1)",
-                             thesis_text(GOAL1CUBE1.get((skill, model))), rates_text(m, LABELS[skill]),
-                             f"training {minutes(b.times.get(f'train-goal1cube1-{skill}-{model}'))}"))
+                trained_row(f"goal1cube1-{skill}", data, model, LABELS[skill],
+                            f"GOAL1CUBE1 {skill}: {model} {' / '.join(LABELS[skill])} % (Table 6.C.1)",
+                            GOAL1CUBE1.get((skill, model)))
 
     if "transfer" not in skip and "pickplace" not in skip:
         for scene in ("clutter", "prisma", "nutoncone", "ballincup"):
@@ -235,12 +239,9 @@ def main(argv: list[str] | None = None) -> int:
                 continue
             data = dataset(skill, "goal2cube2", skill)
             for model in models:
-                run = train(f"{skill}-lambda0", data, model, "--set", "train.aux_weight=0")
-                m = evaluate(f"{skill}-lambda0-{model}", run)
-                figures[f"{skill}-lambda0-{model}"] = m
-                rows.append((f"{skill}: {model}, lambda = 0, {' / '.join(LABELS[skill])} % (Table 6.4.1)",
-                             thesis_text(THESIS_LAMBDA0.get((skill, model))), rates_text(m, LABELS[skill]),
-                             f"training {minutes(b.times.get(f'train-{skill}-lambda0-{model}'))}"))
+                trained_row(f"{skill}-lambda0", data, model, LABELS[skill],
+                            f"{skill}: {model}, lambda = 0, {' / '.join(LABELS[skill])} % (Table 6.4.1)",
+                            THESIS_LAMBDA0.get((skill, model)), "--set", "train.aux_weight=0")
 
     push_f = trained.get(("push", "geeco-f"))
     if "commands" not in skip and push_f is not None and metrics(push_f).get("command") == "positions":
