@@ -142,12 +142,12 @@ def main(argv: list[str] | None = None) -> int:
     def evaluate(key: str, run: Path, *extra: str) -> dict:
         return b.verb(f"eval-{key}", b.home / f"eval-{key}", ["eval", "geeco", "--run", str(run), *w, *extra])
 
-    def trained_row(name: str, data: Path, model: str, labels: tuple[str, ...], label: str, thesis, *extra: str):
+    def trained_row(name: str, data: Path, model: str, skill: str, label: str, table: str, thesis, *extra: str):
         """Train ``model`` on ``data`` (with ``extra`` options), evaluate it, and add its row with its training time."""
         m = evaluate(f"{name}-{model}", train(name, data, model, *extra))
         figures[f"{name}-{model}"] = m
-        rows.append((label, thesis_text(thesis), rates_text(m, labels),
-                     f"training {minutes(b.times.get(f'train-{name}-{model}'))}"))
+        rows.append((f"{label} {' / '.join(LABELS[skill])} % ({table})", thesis_text(thesis),
+                     rates_text(m, LABELS[skill]), f"training {minutes(b.times.get(f'train-{name}-{model}'))}"))
 
     data_seconds = 0.0
     trained: dict[tuple[str, str], Path] = {}
@@ -189,9 +189,8 @@ def main(argv: list[str] | None = None) -> int:
             if skill in skip:
                 continue
             data = dataset(f"goal1cube1-{skill}", "goal1cube1", skill)
-            for model in ("e2evmc", *(m for m in models if m != "e2evmc")):
-                trained_row(f"goal1cube1-{skill}", data, model, LABELS[skill],
-                            f"GOAL1CUBE1 {skill}: {model} {' / '.join(LABELS[skill])} % (Table 6.C.1)",
+            for model in dict.fromkeys(("e2evmc", *models)):  # E2EVMC first, once
+                trained_row(f"goal1cube1-{skill}", data, model, skill, f"GOAL1CUBE1 {skill}: {model}", "Table 6.C.1",
                             GOAL1CUBE1.get((skill, model)))
 
     if "transfer" not in skip and "pickplace" not in skip:
@@ -239,8 +238,7 @@ def main(argv: list[str] | None = None) -> int:
                 continue
             data = dataset(skill, "goal2cube2", skill)
             for model in models:
-                trained_row(f"{skill}-lambda0", data, model, LABELS[skill],
-                            f"{skill}: {model}, lambda = 0, {' / '.join(LABELS[skill])} % (Table 6.4.1)",
+                trained_row(f"{skill}-lambda0", data, model, skill, f"{skill}: {model}, lambda = 0,", "Table 6.4.1",
                             THESIS_LAMBDA0.get((skill, model)), "--set", "train.aux_weight=0")
 
     push_f = trained.get(("push", "geeco-f"))
