@@ -45,6 +45,33 @@ def save_video(path: Path, frames: Iterable[np.ndarray], fps: float = 25.0) -> P
     return path
 
 
+def save_movie(stem: Path, frames: list[np.ndarray], fps: float = 25.0) -> Path:
+    """Save frames as ``stem``.mp4, or, where no H.264 encoder is at hand, as ``stem``.gif at half
+    the frame rate (a GIF of every frame is large); returns the file written."""
+    stem = Path(stem)
+    try:
+        return save_video(stem.with_suffix(".mp4"), frames, fps=fps)
+    except Exception:  # imageio-ffmpeg without libx264, or no ffmpeg binary
+        return save_video(stem.with_suffix(".gif"), list(frames)[::2], fps=fps / 2)
+
+
+def save_training_curves(path: Path, history: list[dict[str, Any]], loss: str, metric: str,
+                         chance: float | None = None) -> Path:
+    """The training curves of ``fit``'s history (``epoch``, ``train_loss``, ``val_metric`` a point)
+    as a PNG: ``loss`` and ``metric`` label the two curves, ``chance`` draws a dotted line."""
+
+    def draw(ax):
+        epochs = [h["epoch"] for h in history]
+        ax.plot(epochs, [h["train_loss"] for h in history], marker="o", label=loss)
+        ax.plot(epochs, [h["val_metric"] for h in history], marker="o", label=metric)
+        if chance is not None:
+            ax.axhline(chance, color="grey", ls=":", lw=1, label="chance")
+        ax.set_xlabel("epoch")
+        ax.legend()
+
+    return save_plot(path, draw)
+
+
 def save_plot(path: Path, draw, figsize=(5, 3.5)) -> Path:
     """``draw(ax)`` on a matplotlib axis, saved as PNG (headless Agg backend)."""
     import matplotlib

@@ -239,10 +239,10 @@ def plugins_cmd(json_: JsonOpt = False) -> None:
     methods = [{"name": m.name, "description": m.description, "chapter": m.chapter, "plugin": m.plugin,
                 "backends": list(m.backends), "scenes": list(m.scenes), "presets": list(m.presets),
                 "models": sorted(p.models_for(m.name)), "default_model": m.default_model,
-                "metrics": sorted(n for n, x in p.registry.metrics.items() if x.method == m.name)}
+                "metrics": sorted(n for (owner, n) in p.registry.metrics if owner == m.name)}
                for m in p.registry.methods.values()]
     result = {"plugins": [i.as_dict() for i in p.info.values()], "methods": methods,
-              "broken": [{"name": b.name, "error": b.error} for b in p.broken]}
+              "broken": [{"name": b.name, "error": b.error} for b in p.broken], "conflicts": p.conflicts}
     if json_:
         return emit(result, True)
     from rich.console import Console
@@ -263,6 +263,8 @@ def plugins_cmd(json_: JsonOpt = False) -> None:
         t.add_row(m["name"], m["chapter"], ", ".join(m["backends"]), ", ".join(m["scenes"]), ", ".join(m["models"]),
                   ", ".join(m["presets"]))
     c.print(t)
+    for line in p.conflicts:
+        c.print(f"[yellow]conflict:[/yellow] {line}")
 
 
 @app.command("backends")

@@ -6,7 +6,10 @@ of dotted overrides applied to the defaults; the config is then resolved as
 
     defaults  <-  preset  <-  --config file  <-  --set key=value (in order)
 
-and every value is checked against its field's type.
+and every value is checked against its field's type: a ``Literal[...]`` field takes only its
+choices, and a field made with ``field_(default, help, ge=..., gt=..., le=..., lt=...)`` only
+values in that range. A section that needs a rule between its fields defines ``validate(self)``,
+raising :class:`~physint_cli.errors.BadInput`; :func:`resolve` calls it once every value is set.
 """
 
 from __future__ import annotations
@@ -47,6 +50,43 @@ def flat_fields(cls, prefix: str = "") -> dict[str, tuple[Any, Any, str]]:
         else:
             out[key] = (hints[f.name], value, f.metadata.get("help", ""))
     return out
+
+
+BOUNDS = {"ge": (">=", lambda v, b: v >= b), "gt": (">", lambda v, b: v > b),
+          "le": ("<=", lambda v, b: v <= b), "lt": ("<", lambda v, b: v < b)}
+
+
+def _field_bounds(cls) -> dict[str, dict[str, Any]]:
+    """``{dotted key: {"ge": 1, ...}}`` for every leaf field that was given a range."""
+    out: dict[str, dict[str, Any]] = {}
+    instance = cls() if isinstance(cls, type) else cls
+    for f in dataclasses.fields(instance):
+        value = getattr(instance, f.name)
+        if dataclasses.is_dataclass(value):
+            out.update({f"{f.name}.{k}": v for k, v in _field_bounds(value).items()})
+        elif f.metadata.get("bounds"):
+            out[f.name] = f.metadata["bounds"]
+    return out
+
+
+def range_text(bounds: dict[str, Any]) -> str:
+    """``>= 1`` or ``in [0, 1)`` for a field's bounds."""
+    low = next(((k, bounds[k]) for k in ("ge", "gt") if k in bounds), None)
+    high = next(((k, bounds[k]) for k in ("le", "lt") if k in bounds), None)
+    if low and high:
+        return f"in {'[' if low[0] == 'ge' else '('}{low[1]}, {high[1]}{']' if high[0] == 'le' else ')'}"
+    k, b = low or high
+    return f"{BOUNDS[k][0]} {b}"
+
+
+def check_range(key: str, value: Any, bounds: dict[str, Any], source: str = "--set") -> None:
+    """BadInput unless ``value`` lies in ``bounds`` (None passes: an optional field left unset)."""
+    if value is None or not bounds:
+        return
+    values = value if isinstance(value, (list, tuple)) else (value,)
+    for v in values:
+        if not all(BOUNDS[k][1](v, b) for k, b in bounds.items()):
+            raise BadInput(f"{source} {key}: must be {range_text(bounds)}, got {value!r}")
 
 
 def type_name(tp: Any) -> str:
@@ -156,11 +196,28 @@ def set_key(cfg: Any, key: str, raw: Any, source: str = "--set") -> None:
         value = coerce(raw, tp, key)
     except BadInput as exc:
         raise BadInput(str(exc).replace("--set", source, 1)) from None
+    check_range(key, value, _field_bounds(type(cfg)).get(key, {}), source)
     *parents, leaf = key.split(".")
     target = cfg
     for p in parents:
         target = getattr(target, p)
     setattr(target, leaf, value)
+
+
+def validate(cfg: Any) -> Any:
+    """Check a whole config: every field's range (defaults included), then each section's
+    ``validate()`` (rules between fields). Returns ``cfg``; BadInput names the key."""
+    for key, bounds in _field_bounds(type(cfg)).items():
+        value = cfg
+        for part in key.split("."):
+            value = getattr(value, part)
+        check_range(key, value, bounds, source="config")
+    sections = [cfg] + [getattr(cfg, f.name) for f in dataclasses.fields(cfg) if dataclasses.is_dataclass(getattr(cfg, f.name))]
+    for section in sections:
+        check = getattr(section, "validate", None)
+        if callable(check):
+            check()
+    return cfg
 
 
 def parse_set(item: str) -> tuple[str, str]:
@@ -217,7 +274,7 @@ def resolve(cls, presets: dict[str, dict[str, Any]], preset: str = "small",
     for item in overrides or []:
         key, value = parse_set(item)
         set_key(cfg, key, value)
-    return cfg
+    return validate(cfg)
 
 
 def to_dict(cfg: Any) -> dict[str, Any]:
@@ -229,7 +286,7 @@ def from_dict(cls, data: dict[str, Any]) -> Any:
     cfg = cls()
     for key, value in _flatten(data).items():
         set_key(cfg, key, value, source="saved config")
-    return cfg
+    return validate(cfg)
 
 
 def fingerprint(section: Any) -> str:
@@ -243,18 +300,25 @@ def describe(cls, presets: dict[str, dict[str, Any]], preset: str) -> list[dict[
     """Rows for ``--help-config``: key, type, value under the preset, default, help."""
     resolved = resolve(cls, presets, preset)
     rows = []
+    bounds = _field_bounds(cls)
     for key, (tp, default, help_text) in flat_fields(cls).items():
         value = resolved
         for part in key.split("."):
             value = getattr(value, part)
-        rows.append({"key": key, "type": type_name(tp), "value": repr(value), "default": repr(default), "help": help_text})
+        kind = type_name(tp) + (f" {range_text(bounds[key])}" if key in bounds else "")
+        rows.append({"key": key, "type": kind, "value": repr(value), "default": repr(default), "help": help_text})
     return rows
 
 
-def field_(default: Any = dataclasses.MISSING, help: str = "", **kw) -> Any:  # noqa: A002
-    """A dataclass field with a help text shown by ``--help-config``."""
+def field_(default: Any = dataclasses.MISSING, help: str = "", *, ge: Any = None, gt: Any = None,  # noqa: A002
+           le: Any = None, lt: Any = None, **kw) -> Any:
+    """A dataclass field with a help text shown by ``--help-config`` and, optionally, a range its
+    values must lie in (``ge`` >=, ``gt`` >, ``le`` <=, ``lt`` <; each element of a tuple too),
+    checked whenever the key is set and by :func:`validate`."""
+    bounds = {k: v for k, v in (("ge", ge), ("gt", gt), ("le", le), ("lt", lt)) if v is not None}
+    metadata = {"help": help, "bounds": bounds}
     if default is not dataclasses.MISSING and isinstance(default, (list, dict, set)):
-        return dataclasses.field(default_factory=lambda d=default: typing.cast(Any, type(d)(d)), metadata={"help": help}, **kw)
+        return dataclasses.field(default_factory=lambda d=default: typing.cast(Any, type(d)(d)), metadata=metadata, **kw)
     if default is not dataclasses.MISSING and dataclasses.is_dataclass(default):
-        return dataclasses.field(default_factory=type(default), metadata={"help": help}, **kw)
-    return dataclasses.field(default=default, metadata={"help": help}, **kw)
+        return dataclasses.field(default_factory=type(default), metadata=metadata, **kw)
+    return dataclasses.field(default=default, metadata=metadata, **kw)

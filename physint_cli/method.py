@@ -66,8 +66,34 @@ class Context:
     data: Path | None = None  # dataset directory (train, eval)
     run: Path | None = None  # this verb's run directory
     source_run: Path | None = None  # the trained run (eval, deploy)
-    options: dict[str, Any] = field(default_factory=dict)  # verb options: model, task, target, ...
+    # the verb options of the command line (None where not given)
+    model: str | None = None  # --model: a network registered for this method (train)
+    task: str | None = None  # --task: the deployment task (deploy)
+    target: str | None = None  # --target: what to deploy towards, in the method's own words (deploy)
+    episodes: int | None = None  # --episodes: also set as eval.episodes / deploy.episodes where the config has it
+    resume: bool = False  # --resume: continue ``run`` from its last checkpoint (train)
     quiet: bool = False
+
+    def verb_options(self) -> dict[str, Any]:
+        """The verb options that were given, as run.json records them."""
+        names = ("model", "task", "target", "episodes", "resume")
+        return {k: getattr(self, k) for k in names if getattr(self, k) not in (None, False)}
+
+    def output(self):
+        """This verb's run directory as a :class:`~physint_cli.runs.Run` (where train saves its model)."""
+        from .runs import Run
+
+        if self.run is None:
+            raise RuntimeError("this context has no run directory")
+        return Run(self.run)
+
+    def trained(self):
+        """The trained run that eval and deploy use, as a :class:`~physint_cli.runs.Run`."""
+        from .runs import Run
+
+        if self.source_run is None:
+            raise BadInput(f"no trained {self.method} run; train one with `physint train {self.method}` or pass --run DIR")
+        return Run(self.source_run)
 
     def log(self, message: str) -> None:
         if not self.quiet:
@@ -98,7 +124,10 @@ class Method:
     config_class: ClassVar[type] = object
     presets: ClassVar[dict[str, dict[str, Any]]] = {"tiny": {}, "small": {}, "paper": {}}
     backends: ClassVar[tuple[str, ...]] = ("mujoco",)
-    scenes: ClassVar[tuple[str, ...]] = ("default",)
+    # ``--scene`` choices: the scenes registered for this method (``register_scenes``), with
+    # ``default_scene`` first; only a method that registers none uses this tuple as it is
+    scenes: tuple[str, ...] = ("default",)
+    default_scene: ClassVar[str | None] = None
     default_model: ClassVar[str | None] = None
     # True when ``deploy`` has agents that need no trained model (e.g. a physics oracle): with no
     # --run and no train run to fall back on, deploy then runs with ``ctx.source_run = None``

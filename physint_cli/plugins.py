@@ -1,7 +1,9 @@
 """Discovering plugins through the ``physint`` entry-point group, with pluggy.
 
 A plugin that fails to import, or whose hook raises, is recorded as broken with its error and
-skipped; it never breaks other plugins or commands.
+skipped; it never breaks other plugins or commands. A name that a second plugin registers again
+(a method, a backend, or a scene, model or metric of the same method) is refused, the first
+registration stays, and the clash is listed in ``conflicts`` (``physint plugins`` shows them).
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ import pluggy
 
 from . import hookspecs
 from .errors import BadInput, unknown
-from .registry import Backend, MetricInfo, ModelInfo, Registry, SceneInfo
+from .registry import Backend, MetricInfo, ModelInfo, Registry, SceneInfo, key_of
 
 GROUP = "physint"
 REGISTER_HOOKS = {
@@ -51,6 +53,7 @@ class Plugins:
         self.info: dict[str, PluginInfo] = {}
         self.registry = Registry()
         self.broken: list[PluginInfo] = []
+        self.conflicts: list[str] = []
         if load_entry_points:
             self._load_entry_points()
         self._collect()
@@ -81,6 +84,7 @@ class Plugins:
         self.info[name] = PluginInfo(name=name, module=getattr(module, "__name__", repr(module)),
                                      distribution=distribution, version=version)
         self.registry = Registry()
+        self.conflicts = []
         self._collect()
 
     def _collect(self) -> None:
@@ -93,9 +97,14 @@ class Plugins:
                     continue
 
                 def register(item, _kind=kind, _plugin=plugin):
+                    target, key = getattr(self.registry, _kind), key_of(_kind, item)
+                    if key in target:  # refused: the first registration stays
+                        owner = f" of method {key[0]!r}" if isinstance(key, tuple) and key[0] else ""
+                        self.conflicts.append(f"{_kind[:-1]} {item.name!r}{owner} registered by plugin {_plugin!r} is "
+                                              f"refused: plugin {target[key].plugin!r} registered it first")
+                        return
                     item.plugin = _plugin
-                    target = getattr(self.registry, _kind)
-                    target[item.name] = item
+                    target[key] = item
                     self.info[_plugin].provides.setdefault(_kind, []).append(item.name)
 
                 try:
@@ -103,6 +112,20 @@ class Plugins:
                 except Exception as exc:
                     info.error = f"{hook_name} failed: {_one_line(exc)}"
                     self.broken.append(info)
+        self._bind_scenes()
+
+    def _bind_scenes(self) -> None:
+        """Each method's ``--scene`` choices are the scenes registered for it (its ``default_scene``
+        first, else the first registered); a method that registers none keeps its own ``scenes``."""
+        for method in self.registry.methods.values():
+            names = [name for (owner, name) in self.registry.scenes if owner == method.name]
+            if not names:
+                continue
+            first = getattr(method, "default_scene", None)
+            if first in names:
+                names.remove(first)
+                names.insert(0, first)
+            method.scenes = tuple(names)
 
     # -- lookups with helpful errors -----------------------------------------------------------
     def method(self, name: str):
@@ -118,13 +141,35 @@ class Plugins:
         return self.registry.backends[name]
 
     def models_for(self, method: str) -> dict[str, ModelInfo]:
-        return {n: m for n, m in self.registry.models.items() if m.method == method}
+        return {name: m for (owner, name), m in self.registry.models.items() if owner == method}
 
     def scenes_for(self, method: str) -> dict[str, SceneInfo]:
-        return {n: s for n, s in self.registry.scenes.items() if s.method == method}
+        return {name: s for (owner, name), s in self.registry.scenes.items() if owner == method}
 
     def metrics_for(self, method: str) -> dict[str, MetricInfo]:
-        return {n: m for n, m in self.registry.metrics.items() if m.method in (None, method)}
+        """The metrics of ``method`` and the method-independent ones."""
+        return {name: m for (owner, name), m in self.registry.metrics.items() if owner in (None, method)}
+
+    def scene(self, method: str, name: str) -> SceneInfo:
+        """Another plugin's scene, by its method and name (how plugins share scenario generators)."""
+        scenes = self.scenes_for(method)
+        if name not in scenes:
+            raise unknown(f"scene of method {method!r}:", name, scenes)
+        return scenes[name]
+
+    def model(self, method: str, name: str) -> ModelInfo:
+        models = self.models_for(method)
+        if name not in models:
+            raise unknown(f"model for method {method!r}:", name, models)
+        return models[name]
+
+    def metric(self, name: str, method: str | None = None) -> MetricInfo:
+        """A registered metric: ``method``'s own, or a method-independent one."""
+        metrics = self.metrics_for(method) if method else \
+            {n: m for (owner, n), m in self.registry.metrics.items() if owner is None}
+        if name not in metrics:
+            raise unknown("metric" + (f" of method {method!r}" if method else ""), name, metrics)
+        return metrics[name]
 
     def register_commands(self, app) -> None:
         for impl in self.pm.hook.register_commands.get_hookimpls():

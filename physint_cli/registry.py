@@ -1,6 +1,9 @@
 """What plugins register: methods, backends, scenes, models, metrics.
 
-The core knows these records and nothing about any simulator or method behind them.
+The core knows these records and nothing about any simulator or method behind them. Methods and
+backends are known by name; scenes, models and metrics by (method, name), so two methods may
+each have a scene called ``default``. A second registration of a key that is taken is refused
+(the first stays) and reported by ``physint plugins``.
 """
 
 from __future__ import annotations
@@ -34,7 +37,10 @@ class MethodPart:
 
 
 class SceneInfo(MethodPart):
-    """A named scene (scenario family) a method can generate data from."""
+    """A named scene (scenario family) a method can generate data from. Its ``--scene`` name is
+    ``name``; ``build(seed, **settings)``, where given, returns a backend-neutral
+    ``physint_backends.Scene`` (and whatever the method documents beside it), so another plugin
+    can reuse the scenario generator through the registry without importing the plugin."""
 
 
 class ModelInfo(MethodPart):
@@ -52,10 +58,15 @@ class MetricInfo:
     plugin: str = ""
 
 
+def key_of(kind: str, item: Any) -> str | tuple[str | None, str]:
+    """The registry key of an item: its name (methods, backends) or (method, name)."""
+    return item.name if kind in ("methods", "backends") else (getattr(item, "method", None), item.name)
+
+
 @dataclass
 class Registry:
     methods: dict[str, Any] = field(default_factory=dict)
     backends: dict[str, Backend] = field(default_factory=dict)
-    scenes: dict[str, SceneInfo] = field(default_factory=dict)
-    models: dict[str, ModelInfo] = field(default_factory=dict)
-    metrics: dict[str, MetricInfo] = field(default_factory=dict)
+    scenes: dict[tuple[str | None, str], SceneInfo] = field(default_factory=dict)
+    models: dict[tuple[str | None, str], ModelInfo] = field(default_factory=dict)
+    metrics: dict[tuple[str | None, str], MetricInfo] = field(default_factory=dict)

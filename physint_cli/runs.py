@@ -5,7 +5,9 @@ Every train, eval and deploy writes a run directory::
     run.json          method, verb, backend, scene, preset, seed, command line, versions,
                       git commit, dataset, source run, times, status
     config.yaml       the resolved config
-    checkpoints/      last.pt and best.pt: model, optimizer state, epoch/step, RNG states
+    checkpoints/      best.pt: the trained model that eval and deploy load (Run.save_trained /
+                      Run.load_trained; training.fit writes it at every better epoch), and
+                      last.pt: fit's resume state (model, optimizer, epoch/batch, RNG states)
     metrics.json      final metrics (written once, at the end)
     metrics.jsonl     curves: one JSON object per logged step
     artifacts/        PNG plots, MP4/GIF videos, rerun .rrd recordings
@@ -33,6 +35,7 @@ from .errors import BadInput
 
 CHECKPOINTS = "checkpoints"
 ARTIFACTS = "artifacts"
+TRAINED = "best"  # checkpoints/best.pt: what a trained run hands to eval and deploy
 
 
 def home() -> Path:
@@ -71,7 +74,7 @@ class Run:
             "versions": versions("mujoco", "pybullet", "robosuite"), "git_commit": git_commit(),
             "data": str(ctx.data) if ctx.data else None,
             "source_run": str(ctx.source_run) if ctx.source_run else None,
-            "options": ctx.options, "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "status": "running",
+            "options": ctx.verb_options(), "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "status": "running",
             **(extra or {}),
         }
         atomic_write_json(path / "run.json", info)
@@ -89,6 +92,39 @@ class Run:
 
     def checkpoint(self, name: str = "last") -> Path:
         return self.path / CHECKPOINTS / f"{name}.pt"
+
+    # -- the trained artefact: the contract between train and eval / deploy ----------------------
+    def save_trained(self, **state: Any) -> Path:
+        """Save what eval and deploy load, atomically, as ``checkpoints/best.pt`` (a ``torch.save``
+        of ``state``). For a registered network: ``model=state_dict(), meta={"method": ...,
+        "model": registered name, "kwargs": its constructor arguments}``, which
+        :func:`physint_cli.training.load_trained_model` rebuilds. ``training.fit`` calls this for
+        every better epoch; a method that trains without ``fit`` calls it itself."""
+        from .training import save_checkpoint
+
+        path = self.checkpoint(TRAINED)
+        path.parent.mkdir(exist_ok=True)
+        save_checkpoint(path, **state)
+        return path
+
+    @property
+    def trained_file(self) -> Path | None:
+        """The saved trained artefact (``best.pt``; ``last.pt`` of a training stopped before any
+        epoch ended better), or None if this run has none yet."""
+        for name in (TRAINED, "last"):
+            if self.checkpoint(name).is_file():
+                return self.checkpoint(name)
+        return None
+
+    def load_trained(self, device: str = "cpu") -> dict[str, Any]:
+        """The state :meth:`save_trained` saved; BadInput if the run has none or it cannot be read."""
+        from .training import load_checkpoint
+
+        path = self.trained_file
+        if path is None:
+            raise BadInput(f"--run {self.path} has no trained model (checkpoints/{TRAINED}.pt); train it first "
+                           f"with `physint train {self.info.get('method', 'METHOD')}` (or --resume)")
+        return load_checkpoint(path, device)
 
     def artifact(self, name: str) -> Path:
         return self.path / ARTIFACTS / name
@@ -115,8 +151,9 @@ def open_run(path: Path | str, method: str | None = None, need_checkpoint: bool 
     info = run.info
     if method and info.get("method") != method:
         raise BadInput(f"--run {p} is a run of method {info.get('method')!r}, not {method!r}")
-    if need_checkpoint and not run.checkpoint("last").exists() and not run.checkpoint("best").exists():
-        raise BadInput(f"--run {p} has no checkpoint; train it first with `physint train {info.get('method')}` (or --resume)")
+    if need_checkpoint and run.trained_file is None:
+        raise BadInput(f"--run {p} has no trained model (checkpoints/{TRAINED}.pt); train it first with "
+                       f"`physint train {info.get('method')}` (or --resume)")
     return run
 
 
@@ -125,6 +162,6 @@ def latest_run(method: str, verb: str = "train", need_checkpoint: bool = True) -
     candidates = sorted(root.glob(f"*-{verb}-*"), reverse=True) if root.is_dir() else []
     for path in candidates:
         run = Run(path)
-        if (path / "run.json").is_file() and (not need_checkpoint or run.checkpoint("last").exists()):
+        if (path / "run.json").is_file() and (not need_checkpoint or run.trained_file is not None):
             return run
     raise BadInput(f"no trained {method} run under {root}; train one with `physint train {method}` or pass --run DIR")

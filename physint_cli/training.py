@@ -392,7 +392,7 @@ def fit(model, train_set, val_set, *, run, epochs: int, batch_size: int, lr: flo
             run.log_metrics(epoch + 1, **point)
             state = state_now(epoch=epoch + 1, batch=0)
             if improved:
-                save_checkpoint(run.checkpoint("best"), **state)
+                run.save_trained(**state)
             save_checkpoint(last, **state)
             left = float(np.mean(epoch_seconds)) * (epochs - epoch - 1)
             log(f"epoch {epoch + 1}/{epochs}: train loss {point['train_loss']:.4f}, val {val:.4f} "
@@ -419,13 +419,9 @@ def _epoch_bar(shown: bool, description: str, total: int, done: int):
 
 def registered_model(method: str, name: str):
     """The ``ModelInfo`` a plugin registered for ``method`` under ``name``; unknown names exit 2."""
-    from .errors import unknown
     from .plugins import get_plugins
 
-    models = get_plugins().models_for(method)
-    if name not in models:
-        raise unknown(f"model for {method}", name, models)
-    return models[name]
+    return get_plugins().model(method, name)
 
 
 def load_trained_model(run_dir, method: str, what: str, device: str = "cpu"):
@@ -435,8 +431,9 @@ def load_trained_model(run_dir, method: str, what: str, device: str = "cpu"):
     from .plugins import get_plugins
     from .runs import Run
 
-    path = Run(Path(run_dir)).checkpoint("best")
-    state = load_checkpoint(path, device)
+    run = Run(Path(run_dir))
+    state = run.load_trained(device)
+    path = run.trained_file
     meta = state.get("meta", {})
     if meta.get("method") != method or meta.get("model") not in get_plugins().models_for(method):
         raise BadInput(f"checkpoint {path} is not a {what} (method {meta.get('method')!r}, model {meta.get('model')!r})")

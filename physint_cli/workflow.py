@@ -17,7 +17,7 @@ from typing import Any
 
 from . import config as configs
 from .datasets import check_writable, finish_manifest, read_manifest, shard_done, start_manifest, versions, write_shard
-from .errors import BadInput, unknown
+from .errors import BadInput, RunFailure, unknown
 from .method import Context, Unit
 from .plugins import get_plugins
 from .runs import Run, home, latest_run, open_run
@@ -74,23 +74,18 @@ def make_context(opts: Options, base: dict[str, Any] | None = None) -> tuple[Any
     cfg = configs.resolve(method.config_class, method.presets, preset, config_file, opts.sets, skip)
     if opts.workers < 1:
         raise BadInput(f"--workers must be >= 1, got {opts.workers}")
-    options: dict[str, Any] = {}
     if opts.model:
         models = plugins.models_for(method.name)
         if opts.model not in models:
             raise unknown(f"model for method {method.name!r}:", opts.model, models)
-        options["model"] = opts.model
         train_section = getattr(cfg, "train", None)
         if hasattr(train_section, "model"):  # so the run's config.yaml says which network it trains
             train_section.model = opts.model
-    for key in ("task", "target", "episodes"):
-        if getattr(opts, key) is not None:
-            options[key] = getattr(opts, key)
-    if opts.resume:
-        options["resume"] = True
+    if opts.episodes is not None and opts.episodes < 1:
+        raise BadInput(f"--episodes must be >= 1, got {opts.episodes}")
     ctx = Context(method=method.name, config=cfg, preset=preset, backend=backend, scene=scene, seed=opts.seed,
-                  device=resolve_device(opts.device), workers=opts.workers, ray=opts.ray, options=options,
-                  quiet=opts.quiet)
+                  device=resolve_device(opts.device), workers=opts.workers, ray=opts.ray, model=opts.model,
+                  task=opts.task, target=opts.target, episodes=opts.episodes, resume=opts.resume, quiet=opts.quiet)
     return method, ctx
 
 
@@ -200,7 +195,7 @@ def _discarded_on_bad_input(run: Run | None):
     try:
         yield
     except BadInput:
-        if run is not None and not run.checkpoint("last").exists():
+        if run is not None and run.trained_file is None and not run.checkpoint("last").exists():
             shutil.rmtree(run.path, ignore_errors=True)
         raise
 
@@ -252,10 +247,14 @@ def run_train(opts: Options) -> dict[str, Any]:
     with _discarded_on_bad_input(run if resume_run is None and world == 1 else None):
         metrics = method.train(ctx)
     if rank == 0:
+        if run.trained_file is None:  # the contract: eval and deploy load what train saved
+            raise RunFailure(f"method {ctx.method!r} (plugin {method.plugin!r}): train() returned without saving a "
+                             f"trained model in {run.path}; save it with ctx.output().save_trained(...) or train "
+                             f"with physint_cli.training.fit")
         run.finish(metrics)
     return {"verb": "train", "method": ctx.method, "backend": ctx.backend, "scene": ctx.scene, "preset": ctx.preset,
             "seed": ctx.seed, "run": str(run.path.resolve()), "data": str(Path(data).resolve()),
-            "checkpoint": str(run.checkpoint("best").resolve()), "metrics": metrics,
+            "checkpoint": str(run.trained_file.resolve()) if run.trained_file else None, "metrics": metrics,
             "seconds": round(time.perf_counter() - t0, 3)}
 
 

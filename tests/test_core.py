@@ -246,7 +246,7 @@ def test_dataset_of_another_method_and_run_without_checkpoint(toy_plugins, tmp_p
     run.mkdir()
     (run / "run.json").write_text(json.dumps({"method": "toy"}))
     code, _, err = call("eval", "toy", "--run", str(run))
-    assert code == 2 and "has no checkpoint" in err
+    assert code == 2 and "has no trained model" in err
 
 
 def test_unwritable_out(toy_plugins, tmp_path):

@@ -15,6 +15,6 @@ class Stability(PackageMethod):
     config_class = StabilityConfig
     presets = PRESETS
     backends = ("mujoco", "pybullet", "robosuite")
-    scenes = ("ccs", "cubes", "all")
+    default_scene = "ccs"  # the --scene choices are the scenes registered in __init__.py
     default_model = "cnn"
     deploys_without_run = True  # the Lemma-1 oracle and random placement need no predictor

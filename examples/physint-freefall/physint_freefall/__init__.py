@@ -12,9 +12,17 @@ def register_methods(register):
     register(FreeFall())
 
 
+def _drop_scene(seed: int, **settings):
+    from .method import sample_drop_scene
+
+    return sample_drop_scene(seed, **settings)
+
+
 @hookimpl
 def register_scenes(register):
-    register(SceneInfo("drop", method="freefall", description="one sphere or box dropped from rest onto the ground"))
+    # build(seed, image_size=32) -> a backend-neutral Scene: other plugins can drop things too
+    register(SceneInfo("drop", method="freefall", build=_drop_scene,
+                       description="one sphere or box dropped from rest onto the ground"))
 
 
 @hookimpl

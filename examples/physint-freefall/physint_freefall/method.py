@@ -41,38 +41,42 @@ def mean_absolute_error(pred: np.ndarray, target: np.ndarray) -> float:
 
 @dataclass
 class DataConfig:
-    train: int = field_(256, "training drops")
-    val: int = field_(64, "validation drops")
-    test: int = field_(64, "test drops")
-    per_shard: int = field_(64, "drops per shard (work unit)")
-    min_height: float = field_(0.2, "lowest drop height (m)")
-    max_height: float = field_(2.0, "highest drop height (m)")
-    min_size: float = field_(0.01, "smallest object radius / half edge (m)")
-    max_size: float = field_(0.05, "largest object radius / half edge (m)")
-    timestep: float = field_(0.001, "physics step (s)")
-    image_size: int = field_(32, "side of the first-frame snapshot (px)")
+    train: int = field_(256, "training drops", ge=1)
+    val: int = field_(64, "validation drops", ge=1)
+    test: int = field_(64, "test drops", ge=1)
+    per_shard: int = field_(64, "drops per shard (work unit)", ge=1)
+    min_height: float = field_(0.2, "lowest drop height (m)", gt=0)
+    max_height: float = field_(2.0, "highest drop height (m)", gt=0)
+    min_size: float = field_(0.01, "smallest object radius / half edge (m)", gt=0)
+    max_size: float = field_(0.05, "largest object radius / half edge (m)", gt=0)
+    timestep: float = field_(0.001, "physics step (s)", gt=0)
+    image_size: int = field_(32, "side of the first-frame snapshot (px)", ge=8)
+
+    def validate(self) -> None:  # rules between fields (the config layer calls this)
+        if self.min_height >= self.max_height or self.min_size > self.max_size:
+            raise BadInput("data.min_height must be below data.max_height, and data.min_size at most data.max_size")
 
 
 @dataclass
 class TrainConfig:
     model: str = field_("mlp", "model name (see `physint plugins`)")
-    hidden: int = field_(32, "hidden units per layer")
-    layers: int = field_(2, "hidden layers")
-    epochs: int = field_(60, "passes over the training drops")
-    batch_size: int = field_(32, "drops per batch")
-    lr: float = field_(0.01, "Adam learning rate")
+    hidden: int = field_(32, "hidden units per layer", ge=1)
+    layers: int = field_(2, "hidden layers", ge=1)
+    epochs: int = field_(60, "passes over the training drops", ge=1)
+    batch_size: int = field_(32, "drops per batch", ge=1)
+    lr: float = field_(0.01, "Adam learning rate", gt=0)
 
 
 @dataclass
 class EvalConfig:
-    drops: int = field_(64, "fresh drops simulated for evaluation")
-    per_unit: int = field_(16, "drops per evaluation work unit")
+    drops: int = field_(64, "fresh drops simulated for evaluation", ge=1)
+    per_unit: int = field_(16, "drops per evaluation work unit", ge=1)
 
 
 @dataclass
 class DeployConfig:
-    height: float = field_(1.0, "drop height to predict when --target is not given (m)")
-    fps: float = field_(25.0, "frame rate of the drop video")
+    height: float = field_(1.0, "drop height to predict when --target is not given (m)", gt=0)
+    fps: float = field_(25.0, "frame rate of the drop video", gt=0)
 
 
 @dataclass
@@ -96,6 +100,13 @@ def drop_scene(shape: str, size: float, height: float, timestep: float, image_si
     camera = Camera("side", pos=(1.5 * frame_top, 0.0, middle), lookat=(0.0, 0.0, middle),
                     fovy=math.degrees(2 * math.atan(0.6 / 1.5)), width=image_size, height=image_size)
     return Scene(bodies=[body], cameras=[camera], timestep=timestep)
+
+
+def sample_drop_scene(seed: int, image_size: int = 32):
+    """One drop of the ``drop`` scene as a backend-neutral Scene (what ``SceneInfo.build`` gives)."""
+    cfg = DataConfig(image_size=image_size)
+    shape, size, height = sample_drops(1, seed, cfg)[0]
+    return drop_scene(shape, size, height, cfg.timestep, image_size, frame_top=cfg.max_height + 2 * cfg.max_size)
 
 
 def simulate_drop(ctx: Context, shape: str, size: float, height: float, frames: bool = False,
@@ -170,15 +181,12 @@ class FreeFall(Method):
         "paper": {"data.train": 4000, "data.val": 500, "data.test": 500, "data.per_shard": 250,
                   "train.hidden": 64, "train.epochs": 200, "eval.drops": 1000, "eval.per_unit": 50},
     }
-    backends = ("mujoco", "pybullet", "robosuite")
-    scenes = ("drop",)
+    backends = ("mujoco", "pybullet", "robosuite")  # --scene choices: the scenes __init__.py registers
     default_model = "mlp"
 
     # dataset ------------------------------------------------------------------------------------
     def dataset_units(self, ctx: Context) -> list[Unit]:
         d = ctx.config.data
-        if not 0 < d.min_height < d.max_height:
-            raise BadInput("data.min_height must be > 0 and below data.max_height")
         return split_units({"train": d.train, "val": d.val, "test": d.test}, d.per_shard, ctx.seed)
 
     def generate(self, ctx: Context, unit: Unit) -> tuple[dict[str, np.ndarray], dict[str, Any]]:
@@ -195,20 +203,17 @@ class FreeFall(Method):
     def _build(self, name: str, cfg: TrainConfig):
         from physint_cli.plugins import get_plugins
 
-        models = get_plugins().models_for(self.name)
-        if name not in models:
-            raise BadInput(f"unknown model {name!r} for freefall; models: {', '.join(models)}")
-        return models[name].build(hidden=cfg.hidden, layers=cfg.layers)
+        return get_plugins().model(self.name, name).build(hidden=cfg.hidden, layers=cfg.layers)
 
     def train(self, ctx: Context) -> dict[str, Any]:
         import torch
 
+        from physint_cli.artifacts import save_training_curves
         from physint_cli.datasets import ShardedDataset
-        from physint_cli.runs import Run
         from physint_cli.training import fit
 
         cfg = ctx.config.train
-        model_name = ctx.options.get("model", cfg.model)
+        model_name = ctx.model or cfg.model
         model = self._build(model_name, cfg)
         fields = ["height", "time"]
         train_set = ShardedDataset(ctx.data, "train", fields, transform=_to_tensors, method=self.name)
@@ -221,39 +226,30 @@ class FreeFall(Method):
             errors = [torch.abs(net(b["height"]) - b["time"]).sum() for b in loader]
             return float(torch.stack(errors).sum() / len(loader.dataset))
 
-        result = fit(model, train_set, val_set, run=Run(ctx.run), epochs=cfg.epochs, batch_size=cfg.batch_size,
+        result = fit(model, train_set, val_set, run=ctx.output(), epochs=cfg.epochs, batch_size=cfg.batch_size,
                      lr=cfg.lr, loss_fn=loss_fn, metric_fn=val_mae, device=ctx.device, seed=ctx.seed,
-                     resume=bool(ctx.options.get("resume")), log=ctx.log, progress=not ctx.quiet,
-                     meta={"model": model_name, "kwargs": {"hidden": cfg.hidden, "layers": cfg.layers}})
-        _plot_curve(Run(ctx.run), result.history)
+                     resume=ctx.resume, log=ctx.log, progress=not ctx.quiet,
+                     meta={"method": self.name, "model": model_name,
+                           "kwargs": {"hidden": cfg.hidden, "layers": cfg.layers}})
+        save_training_curves(ctx.output().artifact("training_curve.png"), result.history,
+                             loss="train MSE (s²)", metric="val MAE (s)")
         return {"model": model_name, "epochs": result.epochs, "val_mae_s": result.best_metric,
                 "train_drops": len(train_set)}
 
     def _load(self, ctx: Context):
-        import torch  # noqa: F401
+        from physint_cli.training import load_trained_model
 
-        from physint_cli.plugins import get_plugins
-        from physint_cli.runs import Run
-        from physint_cli.training import load_checkpoint
-
-        state = load_checkpoint(Run(ctx.source_run).checkpoint("best"))
-        meta = state.get("meta", {})
-        models = get_plugins().models_for(self.name)
-        if meta.get("model") not in models:
-            raise BadInput(f"checkpoint in {ctx.source_run} is not a freefall model (model {meta.get('model')!r})")
-        model = models[meta["model"]].build(**meta["kwargs"])
-        model.load_state_dict(state["model"])
-        return model.eval()
+        model, _meta = load_trained_model(ctx.trained().path, self.name, "freefall model")
+        return model
 
     # eval ---------------------------------------------------------------------------------------
     def evaluate(self, ctx: Context) -> dict[str, Any]:
         import torch
 
         from physint_cli.artifacts import save_plot
-        from physint_cli.runs import Run
 
         e = ctx.config.eval
-        drops = int(ctx.options.get("episodes") or e.drops)
+        drops = int(ctx.episodes or e.drops)
         units = split_units({"eval": drops}, e.per_unit, unit_seed(ctx.seed, "eval"))
         parts = ctx.map(evaluate_unit, units, description="freefall eval drops")
         heights = np.concatenate([p["height"] for p in parts])
@@ -281,7 +277,7 @@ class FreeFall(Method):
             ax.set_ylabel("time to ground (s)")
             ax.legend()
 
-        save_plot(Run(ctx.run).artifact("predictions.png"), draw)
+        save_plot(ctx.output().artifact("predictions.png"), draw)
         return metrics
 
     # deploy -------------------------------------------------------------------------------------
@@ -289,9 +285,8 @@ class FreeFall(Method):
         import torch
 
         from physint_cli.artifacts import Recording, save_image, save_video
-        from physint_cli.runs import Run
 
-        target = ctx.options.get("target")
+        target = ctx.target
         try:
             height = float(target) if target is not None else ctx.config.deploy.height
         except ValueError:
@@ -302,7 +297,7 @@ class FreeFall(Method):
         with torch.no_grad():
             predicted = float(model(torch.tensor([[height]], dtype=torch.float32))[0, 0])
         t_sim, first, video = simulate_drop(ctx, "sphere", 0.06, height, frames=True, fps=ctx.config.deploy.fps)
-        run = Run(ctx.run)
+        run = ctx.output()
         save_image(run.artifact("first_frame.png"), first)
         save_video(run.artifact("drop.gif"), video, fps=ctx.config.deploy.fps)
         save_video(run.artifact("drop.mp4"), video, fps=ctx.config.deploy.fps)
@@ -321,16 +316,3 @@ def _to_tensors(record: dict[str, np.ndarray]) -> dict[str, Any]:
     import torch
 
     return {k: torch.as_tensor(np.asarray(v, dtype=np.float32)).reshape(1) for k, v in record.items()}
-
-
-def _plot_curve(run, history: list[dict[str, float]]) -> None:
-    from physint_cli.artifacts import save_plot
-
-    def draw(ax):
-        ax.plot([h["epoch"] for h in history], [h["train_loss"] for h in history], label="train MSE (s²)")
-        ax.plot([h["epoch"] for h in history], [h["val_metric"] for h in history], label="val MAE (s)")
-        ax.set_yscale("log")
-        ax.set_xlabel("epoch")
-        ax.legend()
-
-    save_plot(run.artifact("training_curve.png"), draw)
