@@ -19,7 +19,7 @@ import pybullet
 import pybullet_data
 
 from .base import Robot, RobotState, check_part
-from .pybullet_backend import compose, invert
+from .poses import compose, invert
 from .spec import GOAL_LEAD_STEPS, GRIPPER_CLOSE, GRIPPER_OPEN
 from .spec import Robot as RobotSpec
 from .spec import validate_action

@@ -100,7 +100,7 @@ class Run:
         "model": registered name, "kwargs": its constructor arguments}``, which
         :func:`physint_cli.training.load_trained_model` rebuilds. ``training.fit`` calls this for
         every better epoch; a method that trains without ``fit`` calls it itself."""
-        from .training import save_checkpoint
+        from .checkpoints import save_checkpoint
 
         path = self.checkpoint(TRAINED)
         path.parent.mkdir(exist_ok=True)
@@ -118,7 +118,7 @@ class Run:
 
     def load_trained(self, device: str = "cpu") -> dict[str, Any]:
         """The state :meth:`save_trained` saved; BadInput if the run has none or it cannot be read."""
-        from .training import load_checkpoint
+        from .checkpoints import load_checkpoint
 
         path = self.trained_file
         if path is None:

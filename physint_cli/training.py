@@ -18,6 +18,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from .checkpoints import load_checkpoint, save_checkpoint  # noqa: F401  (plugins import them from here too)
 from .errors import BadInput
 
 
@@ -160,29 +161,6 @@ def barrier(d: Dist) -> None:
         import torch.distributed as dist
 
         dist.barrier()
-
-
-def save_checkpoint(path: Path, **state: Any) -> None:
-    """Atomically save model/optimizer/progress state (temp file + rename)."""
-    import torch
-
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    try:
-        torch.save(state, tmp)
-        os.replace(tmp, path)
-    except BaseException:  # an interrupt or a full disk leaves the previous checkpoint and no temp file
-        tmp.unlink(missing_ok=True)
-        raise
-
-
-def load_checkpoint(path: Path, map_location: str = "cpu") -> dict[str, Any]:
-    import torch
-
-    try:
-        return torch.load(path, map_location=map_location, weights_only=False)
-    except Exception as exc:
-        raise BadInput(f"checkpoint {path} cannot be read ({type(exc).__name__}); it may be corrupted") from None
 
 
 def unwrap(model):
