@@ -8,8 +8,9 @@ on the seed only (they are laid out so that every task of the scene is doable), 
 written by one deployment (``target.png``) is the target of the same seed's start state again.
 
 Written: ``target.png``, ``episode.mp4`` (camera view | target | dynamic image of the buffer |
-dynamic image of the difference to the target), ``deploy.rrd`` (the same, plus commands and the
-predicted hand and object positions, for ``rerun``), and the outcome (REACH, PICK, PUSH/PLACE).
+dynamic image of the difference to the target; ``episode.gif`` where no H.264 encoder is at
+hand), ``deploy.rrd`` (the same, plus commands and the predicted hand and object positions, for
+``rerun``), and the outcome (REACH, PICK, PUSH/PLACE).
 """
 
 from __future__ import annotations
@@ -62,19 +63,18 @@ def read_target(path: Path, resolution: int) -> np.ndarray:
 
 
 def deploy(ctx: Context) -> dict[str, Any]:
-    from physint_cli.artifacts import Recording, save_image, save_video
-    from physint_cli.runs import Run
+    from physint_cli.artifacts import Recording, save_image, save_movie
 
     from .control import Policy, expert_target, run_episode
     from .dynamic import dynamic_image, to_rgb
     from .train import load_controller
 
-    model, meta = load_controller(ctx.source_run, ctx.device)
+    model, meta = load_controller(ctx.trained().path, ctx.device)
     skill, resolution = meta["skill"], model.image_size
-    if ctx.options.get("episodes") not in (None, 1):
+    if ctx.episodes not in (None, 1):
         ctx.log("geeco deploy runs one episode toward one target (--seed picks the start state); "
                 "--episodes counts the episodes of physint eval geeco")
-    target_arg = ctx.options.get("target")
+    target_arg = ctx.target
     tasks = S.tasks(ctx.scene)
     image_file = target_arg is not None and Path(target_arg).suffix.lower() in (".png", ".jpg", ".jpeg", ".bmp")
     if image_file and not Path(target_arg).is_file():
@@ -87,7 +87,7 @@ def deploy(ctx: Context) -> dict[str, Any]:
         except ValueError as exc:
             raise BadInput(str(exc)) from None
     ep = start_state(ctx, skill, task)
-    run = Run(ctx.run)
+    run = ctx.output()
     sim = ctx.make_sim(S.build_scene(ep, resolution))
     try:
         if image_file:
@@ -124,7 +124,7 @@ def deploy(ctx: Context) -> dict[str, Any]:
             outcome = run_episode(sim, ep, Policy(model, ctx.device), target if model.conditioned else None,
                                   ctx.config.deploy.steps, resolution, on_step=on_step)
         if ctx.config.deploy.video and frames:
-            save_video(run.artifact("episode.mp4"), frames)
+            save_movie(run.artifact("episode"), frames)
     finally:
         sim.close()
     return {"goal": goal, "scene": ctx.scene, "backend": ctx.backend, "model": meta["model"], "skill": skill,

@@ -82,7 +82,7 @@ def _eval_episodes(ctx: Context, unit: Unit) -> list[dict[str, Any]]:
     from .control import Policy, expert_target, run_episode, run_episodes, sims_for
     from .train import load_controller
 
-    model, meta = load_controller(ctx.source_run, ctx.device)
+    model, meta = load_controller(ctx.trained().path, ctx.device)
     cfg = ctx.config.eval
     resolution, group = model.image_size, cfg.side_by_side
     policies = [Policy(model, ctx.device) for _ in range(group)]
@@ -151,7 +151,7 @@ def summarize(results: list[dict[str, Any]], skill: str) -> dict[str, Any]:
 def evaluate(ctx: Context) -> dict[str, Any]:
     from .train import load_controller
 
-    _, meta = load_controller(ctx.source_run)
+    _, meta = load_controller(ctx.trained().path)
     cfg = ctx.config.eval  # --episodes N arrives as eval.episodes=N
     if cfg.episodes < 1 or cfg.steps < 1 or cfg.per_unit < 1:
         raise BadInput(f"eval.episodes (--episodes), eval.steps and eval.per_unit must be >= 1, got "
@@ -181,7 +181,5 @@ def evaluate(ctx: Context) -> dict[str, Any]:
 def _save_table(ctx: Context, results: list[dict[str, Any]]) -> None:
     import json
 
-    from physint_cli.runs import Run
-
-    path = Run(ctx.run).artifact("episodes.jsonl")
+    path = ctx.output().artifact("episodes.jsonl")
     path.write_text("".join(json.dumps(r) + "\n" for r in results))

@@ -260,8 +260,8 @@ def resolve_command(command: str, skill: str, classified: bool = False, aux_weig
 
 
 def train(ctx: Context) -> dict[str, Any]:
+    from physint_cli.artifacts import save_training_curves
     from physint_cli.datasets import read_manifest
-    from physint_cli.runs import Run
     from physint_cli.training import adamw_cosine, fit
 
     from .model import geeco_loss
@@ -270,7 +270,7 @@ def train(ctx: Context) -> dict[str, Any]:
     manifest = read_manifest(ctx.data, "geeco")
     data_cfg = manifest["config"].get("data", manifest["config"])
     skill, scene = data_cfg["skill"], manifest["scene"]
-    name = ctx.options.get("model", cfg.model)
+    name = ctx.model or cfg.model
     if cfg.chunk < 1 or cfg.chunk > data_cfg["horizon"]:
         raise BadInput(f"train.chunk must be in [1, {data_cfg['horizon']}], got {cfg.chunk}")
     for key in ("epochs", "batch_size"):
@@ -314,7 +314,8 @@ def train(ctx: Context) -> dict[str, Any]:
     if cfg.dee_modes:
         model.set_modes(train_demos["dee"] / DEE_SCALE, seed=ctx.seed)
     train_set, val_set = Chunks(train_demos, cfg.chunk), Chunks(val_demos, cfg.chunk)
-    aggregation = Aggregation(ctx, Run(ctx.run).path, train_set, train_demos, rounds, cfg.dagger_episodes,
+    run = ctx.output()
+    aggregation = Aggregation(ctx, run.path, train_set, train_demos, rounds, cfg.dagger_episodes,
                               data_cfg["horizon"], cfg.dagger_beta, ctx.log) if rounds else None
     ctx.log(f"training {name} on {len(train_demos['rgb'])} {skill} demonstrations of {scene} "
             f"({len(train_set)} chunks of {cfg.chunk} windows), validating on {len(val_demos['rgb'])}")
@@ -338,9 +339,9 @@ def train(ctx: Context) -> dict[str, Any]:
             return adamw_cosine(net, lr=cfg.lr, weight_decay=0.0, epochs=cfg.epochs)  # Adam, decaying rate
 
     try:
-        result = fit(model, train_set, val_set, run=Run(ctx.run), epochs=cfg.epochs, batch_size=cfg.batch_size,
+        result = fit(model, train_set, val_set, run=run, epochs=cfg.epochs, batch_size=cfg.batch_size,
                      lr=cfg.lr, loss_fn=loss_fn, metric_fn=metric, make_optimizer=make_optimizer, device=ctx.device,
-                     seed=ctx.seed, resume=bool(ctx.options.get("resume")), log=ctx.log, higher_is_better=True,
+                     seed=ctx.seed, resume=ctx.resume, log=ctx.log, higher_is_better=True,
                      precision=cfg.precision, batch_transform=to_float_frames, before_epoch=aggregation,
                      progress=not ctx.quiet, meta={"method": "geeco", "model": name, "kwargs": kwargs, "scene": scene,
                                                    "skill": skill, "backend": manifest["backend"],
@@ -348,7 +349,8 @@ def train(ctx: Context) -> dict[str, Any]:
     finally:
         if isinstance(metric, ClosedLoopProgress):
             metric.close()  # its simulators and their render contexts
-    _plot_curves(Run(ctx.run), result.history, cfg.val_episodes > 0)
+    save_training_curves(run.artifact("training_curves.png"), result.history, loss="train loss (Eq. 6.3)",
+                         metric="val task progress (closed loop)" if cfg.val_episodes > 0 else "val: minus loss")
     return {"model": name, "skill": skill, "scene": scene, "epochs": result.epochs,
             "val_metric": result.best_metric, "val_metric_is": "closed-loop task progress" if cfg.val_episodes
             else "minus validation loss (Eq. 6.3)", "train_demos": len(train_demos["rgb"]),
@@ -362,17 +364,3 @@ def load_controller(run_dir, device: str = "cpu"):
     from physint_cli.training import load_trained_model
 
     return load_trained_model(run_dir, "geeco", "GEECO controller", device)
-
-
-def _plot_curves(run, history, closed_loop: bool) -> None:
-    from physint_cli.artifacts import save_plot
-
-    def draw(ax):
-        epochs = [h["epoch"] for h in history]
-        ax.plot(epochs, [h["train_loss"] for h in history], label="train loss (Eq. 6.3)")
-        ax.plot(epochs, [h["val_metric"] for h in history],
-                label="val task progress (closed loop)" if closed_loop else "val: minus loss")
-        ax.set_xlabel("epoch")
-        ax.legend()
-
-    save_plot(run.artifact("training_curves.png"), draw)
