@@ -28,7 +28,7 @@ LOW, NEAR, RISE = 0.04, 0.10, 0.02  # m: hand height above the table, hand-cube 
 
 def targets_of(demos: dict[str, np.ndarray], start_obj: np.ndarray) -> np.ndarray:
     """The target centre (x, y) of each episode, found by its start state among the demonstrations."""
-    from physint_plugins.geeco.train import episodes_of
+    from physint_plugins.geeco.checkpoint import episodes_of
 
     episodes = episodes_of(demos, "goal2cube2", "push")
     out = []

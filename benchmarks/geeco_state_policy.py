@@ -32,8 +32,9 @@ import torch
 from physint_cli.datasets import ShardedDataset
 from physint_cli.plugins import get_plugins
 from physint_plugins.geeco import scenes as S
+from physint_plugins.geeco.checkpoint import episodes_of, load_controller
 from physint_plugins.geeco.control import DEE_SCALE, Policy, run_episode
-from physint_plugins.geeco.train import episodes_of, load_controller, load_split
+from physint_plugins.geeco.train import load_split
 
 K = 4  # the controllers' buffer
 

@@ -100,7 +100,8 @@ def test_random_backgrounds_are_recorded_with_their_seeds_and_replayed_wherever_
 
     from physint_plugins.geeco.control import observe
     from physint_plugins.geeco.evaluate import episode_of, plan_episodes
-    from physint_plugins.geeco.train import episodes_of, load_split
+    from physint_plugins.geeco.checkpoint import episodes_of
+    from physint_plugins.geeco.train import load_split
 
     data = tmp_path / "random"
     code, _, err = call("dataset", "geeco", "--preset", "tiny", "--set", "data.demos=4", "--set",
@@ -392,7 +393,7 @@ def test_dagger_labels_the_states_a_controller_reaches_with_the_experts_commands
     import physint_backends as pb
     from physint_plugins.geeco.dagger import rollouts
     from physint_plugins.geeco.expert import on_target
-    from physint_plugins.geeco.train import episodes_of
+    from physint_plugins.geeco.checkpoint import episodes_of
 
     out, _ = tiny_pipeline
     demos = ShardedDataset(out / "dataset", "train", method="geeco", in_memory=True).arrays
@@ -423,7 +424,8 @@ def test_dagger_labels_the_states_a_controller_reaches_with_the_experts_commands
 
 def test_dagger_rounds_join_the_training_data_and_are_reloaded_on_resume(tiny_pipeline, tmp_path):
     from physint_plugins.geeco.dagger import Aggregation
-    from physint_plugins.geeco.train import Chunks, load_controller, load_split
+    from physint_plugins.geeco.checkpoint import load_controller
+    from physint_plugins.geeco.train import Chunks, load_split
 
     out, _ = tiny_pipeline
     run = tmp_path / "dagger"
@@ -458,7 +460,8 @@ def test_dagger_needs_the_push_expert():
 def test_a_controller_with_classified_commands_trains_evaluates_and_keeps_its_head(tiny_pipeline, tmp_path, setting):
     from physint_plugins.geeco.control import DEE_SCALE
     from physint_plugins.geeco.model import command_modes
-    from physint_plugins.geeco.train import load_controller, load_split
+    from physint_plugins.geeco.checkpoint import load_controller
+    from physint_plugins.geeco.train import load_split
 
     out, _ = tiny_pipeline
     run = tmp_path / "classified"
@@ -495,7 +498,8 @@ def test_the_small_presets_push_controller_is_commanded_from_positions_and_train
     keeps is the one its first stage chose (the network's training leaves it alone)."""
     from torch.nn import functional as F
 
-    from physint_plugins.geeco.train import Chunks, load_controller
+    from physint_plugins.geeco.checkpoint import load_controller
+    from physint_plugins.geeco.train import Chunks
 
     out, result = tiny_pipeline
     run, metrics = out / "train", result["train"]["metrics"]

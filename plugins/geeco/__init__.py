@@ -5,16 +5,19 @@ should look, and commands end-effector motions and the gripper to push or carry 
 onto the right pad: no demonstration or fine-tuning for the new task. This module holds the hook
 implementations only; the chapter is told by the other modules:
 
-    config.py    the config and its tiny / small / paper presets (Appendix 6.A)
-    scenes.py    GOAL2CUBE2, GOAL1CUBE1 and the transfer scenes (Figs. 6.4.1, 6.4.2)
-    expert.py    the scripted expert that records the demonstrations
-    dataset.py   recording demonstrations (Section 6.4)
-    dynamic.py   dynamic images (Eqs. 6.1, 6.2)
-    model.py     GEECO-F, -D, -R and E2EVMC; the loss of Eq. 6.3
-    train.py     training on demonstration windows
-    control.py   closed-loop control and the REACH / PICK / PUSH / PLACE outcomes
-    evaluate.py  success rates with confidence intervals (Tables 6.4.1, 6.4.2, 6.C.1)
-    deploy.py    running a controller on a target image or a goal in words
+    method.py      the Method: physint's four verbs, in the modules below
+    config.py      the config and its tiny / small / paper presets (Appendix 6.A)
+    scenes.py      GOAL2CUBE2, GOAL1CUBE1 and the transfer scenes (Figs. 6.4.1, 6.4.2)
+    expert.py      the scripted expert that records the demonstrations
+    dataset.py     recording demonstrations (Section 6.4)
+    dynamic.py     dynamic images (Eqs. 6.1, 6.2)
+    model.py       GEECO-F, -D, -R and E2EVMC; the loss of Eq. 6.3
+    control.py     closed-loop control and the REACH / PICK / PUSH / PLACE outcomes
+    train.py       training on demonstration windows
+    dagger.py      DAgger rounds for the push controller (not in the thesis)
+    checkpoint.py  loading a trained controller and a dataset's start states (eval, deploy, DAgger)
+    evaluate.py    success rates with confidence intervals (Tables 6.4.1, 6.4.2, 6.C.1)
+    deploy.py      running a controller on a target image or a goal in words
 """
 
 from physint_cli import hookimpl

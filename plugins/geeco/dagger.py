@@ -30,6 +30,7 @@ import numpy as np
 from physint_cli.errors import BadInput
 
 from . import scenes as S
+from .checkpoint import episodes_of
 from .control import LOCKSTEP, ClosedLoop, Policy, act_together, sims_for
 from .dataset import empty_episode, record_step
 from .expert import Expert, on_target
@@ -103,8 +104,6 @@ def rollouts(sims: list, episodes: list[S.Episode], policies: list[Policy], targ
 def aggregation_round(make_sim, model, demos: dict[str, np.ndarray], scene: str, episodes: int, horizon: int,
                       rng: np.random.Generator, beta: float = 0.0) -> dict[str, np.ndarray]:
     """Rollouts of ``model`` from ``episodes`` training start states drawn by ``rng``, stacked."""
-    from .train import episodes_of
-
     starts = episodes_of(demos, scene, "push")
     chosen = rng.choice(len(starts), size=min(episodes, len(starts)), replace=False)
     coins = rng.spawn(len(chosen))  # each rollout its own draws, whichever episodes share its group

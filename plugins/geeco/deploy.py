@@ -24,6 +24,7 @@ from physint_cli.errors import BadInput
 from physint_cli.method import Context, unit_seed
 
 from . import scenes as S
+from .checkpoint import load_controller
 
 
 def start_state(ctx: Context, skill: str, task: tuple[int, int]) -> S.Episode:
@@ -67,7 +68,6 @@ def deploy(ctx: Context) -> dict[str, Any]:
 
     from .control import Policy, expert_target, run_episode
     from .dynamic import dynamic_image, to_rgb
-    from .train import load_controller
 
     model, meta = load_controller(ctx.trained().path, ctx.device)
     skill, resolution = meta["skill"], model.image_size

@@ -23,6 +23,7 @@ from physint_cli.errors import BadInput
 from physint_cli.method import Context, Unit, unit_seed
 
 from . import scenes as S
+from .checkpoint import load_controller, with_optional
 
 POSITIONS = ("seen", "true")
 NAMES = {"push": {"reach": "REACH", "success": "PUSH"},
@@ -47,8 +48,6 @@ def plan_episodes(ctx: Context, meta: dict[str, Any], count: int) -> list[dict[s
 
         if ctx.data is None:
             raise BadInput("this run's dataset is not known: pass --data DATASET (its test split holds the start states)")
-        from .train import with_optional
-
         test = ShardedDataset(ctx.data, "test", with_optional(ctx.data, ["layout", "task", "seed"]), method="geeco")
         n = min(count, len(test))
         stored = ctx.backend == meta["backend"]
@@ -80,7 +79,6 @@ def eval_unit(ctx: Context, unit: Unit) -> list[dict[str, Any]]:
 
 def _eval_episodes(ctx: Context, unit: Unit) -> list[dict[str, Any]]:
     from .control import Policy, expert_target, run_episode, run_episodes, sims_for
-    from .train import load_controller
 
     model, meta = load_controller(ctx.trained().path, ctx.device)
     cfg = ctx.config.eval
@@ -149,8 +147,6 @@ def summarize(results: list[dict[str, Any]], skill: str) -> dict[str, Any]:
 
 
 def evaluate(ctx: Context) -> dict[str, Any]:
-    from .train import load_controller
-
     _, meta = load_controller(ctx.trained().path)
     cfg = ctx.config.eval  # --episodes N arrives as eval.episodes=N
     if cfg.episodes < 1 or cfg.steps < 1 or cfg.per_unit < 1:

@@ -18,14 +18,13 @@ import numpy as np
 from physint_cli.errors import BadInput
 from physint_cli.method import Context
 
-from . import scenes as S
+from .checkpoint import episodes_of, with_optional
 from .control import DEE_SCALE, scale_goal, scale_positions
 from .dagger import Aggregation, parse_epochs
 from .model import BUFFER, COMMANDS, READOUTS
 
 SCHEDULES = ("cosine", "constant")
 FIELDS = ["rgb", "joints", "ee", "obj", "dee", "grip", "layout", "task", "seed"]
-OPTIONAL_FIELDS = ["backdrop"]  # not in datasets recorded before data.backgrounds
 
 
 def build_model(name: str, image_size: int, cfg, command: str = "network"):
@@ -45,13 +44,6 @@ def load_split(root: Path, split: str) -> dict[str, np.ndarray]:
     from physint_cli.datasets import ShardedDataset
 
     return ShardedDataset(root, split, with_optional(root, FIELDS), method="geeco", in_memory=True).arrays
-
-
-def with_optional(root: Path, fields: list[str]) -> list[str]:
-    """``fields`` and those of ``OPTIONAL_FIELDS`` that the dataset at ``root`` holds."""
-    from physint_cli.datasets import read_manifest
-
-    return fields + [f for f in OPTIONAL_FIELDS if f in read_manifest(Path(root), "geeco")["schema"]]
 
 
 class Chunks:
@@ -179,12 +171,6 @@ def to_float_frames(batch: dict[str, Any]) -> dict[str, Any]:
     out["frames"] = batch["frames"].float().div_(255.0).movedim(-1, -3)
     out["target"] = batch["target"].float().div_(255.0).movedim(-1, -3)
     return out
-
-
-def episodes_of(demos: dict[str, np.ndarray], scene: str, skill: str) -> list[S.Episode]:
-    backdrops = demos.get("backdrop", np.full(len(demos["layout"]), -1))
-    return [S.Episode.rebuild(scene, skill, demos["layout"][i], demos["task"][i], demos["seed"][i], backdrops[i])
-            for i in range(len(demos["layout"]))]
 
 
 def add_goals(demos: dict[str, np.ndarray], scene: str, skill: str) -> dict[str, np.ndarray]:
@@ -357,10 +343,3 @@ def train(ctx: Context) -> dict[str, Any]:
             "val_demos": len(val_demos["rgb"]), "command": command, "dagger_epochs": rounds,
             "dagger": aggregation.stats if aggregation else [],
             **({"command_head": command_head} if command_head else {})}
-
-
-def load_controller(run_dir, device: str = "cpu"):
-    """The best checkpoint of a trained GEECO run, in eval mode, and its meta."""
-    from physint_cli.training import load_trained_model
-
-    return load_trained_model(run_dir, "geeco", "GEECO controller", device)
