@@ -80,10 +80,10 @@ def test_a_goal_in_words_and_the_target_image_it_made_give_the_same_start(tiny_p
 
 @pytest.mark.parametrize("args, message", [
     (["dataset", "geeco", "--scene", "clutter"], "for evaluation only"),
-    (["dataset", "geeco", "--set", "data.skill=fly"], "data.skill must be one of push, pickplace"),
-    (["dataset", "geeco", "--set", "data.demos=2"], "data.demos must be >= 4"),
-    (["dataset", "geeco", "--set", "data.action_noise=0.5"], "data.action_noise must be in [0, 0.02]"),
-    (["dataset", "geeco", "--set", "data.backgrounds=video"], "data.backgrounds must be one of plain, random, mixed"),
+    (["dataset", "geeco", "--set", "data.skill=fly"], "data.skill: 'fly' is not one of push, pickplace"),
+    (["dataset", "geeco", "--set", "data.demos=2"], "data.demos: must be >= 4, got 2"),
+    (["dataset", "geeco", "--set", "data.action_noise=0.5"], "data.action_noise: must be in [0.0, 0.02], got 0.5"),
+    (["dataset", "geeco", "--set", "data.backgrounds=video"], "data.backgrounds: 'video' is not one of plain, random, mixed"),
     (["train", "geeco", "--model", "geeco-x"], "geeco-x"),
 ])
 def test_bad_input_exits_2_with_one_line(args, message):
@@ -338,20 +338,21 @@ def test_a_run_takes_the_scene_of_its_dataset(tiny_pipeline, tmp_path):
 
 def test_bad_training_settings_exit_2(tiny_pipeline, tmp_path):
     out, _ = tiny_pipeline
-    for setting, message in (("train.width=0", "train.width and train.lr must be > 0"),
-                             ("train.chunk=0", "train.chunk must be in [1, 100]"),
-                             ("train.epochs=0", "train.epochs must be >= 1"),
-                             ("train.min_side=0", "train.min_side must be >= 1"),
-                             ("train.stem_stride=3", "train.stem_stride must be 1 or 2"),
-                             ("train.dee_bins=1", "train.dee_bins must be 0 (regression, the thesis) or >= 2"),
-                             ("train.dee_modes=-2", "train.dee_modes must be 0 (off) or >= 2"),
-                             ("train.readout=pool", "train.readout must be one of flatten, keypoints"),
-                             ("train.command=plan", "train.command must be one of network, positions"),
-                             ("train.schedule=step", "train.schedule must be one of cosine, constant"),
+    for setting, message in (("train.width=0", "train.width: must be > 0.0, got 0.0"),
+                             ("train.chunk=0", "train.chunk: must be >= 1, got 0"),
+                             ("train.chunk=101", "train.chunk must be in [1, 100]"),
+                             ("train.epochs=0", "train.epochs: must be >= 1, got 0"),
+                             ("train.min_side=0", "train.min_side: must be >= 1, got 0"),
+                             ("train.stem_stride=3", "train.stem_stride: '3' is not one of 1, 2"),
+                             ("train.dee_bins=1", "train.dee_bins: must be 0 (regression, the thesis) or >= 2, got 1"),
+                             ("train.dee_modes=-2", "train.dee_modes: must be >= 0, got -2"),
+                             ("train.readout=pool", "train.readout: 'pool' is not one of flatten, keypoints"),
+                             ("train.command=plan", "train.command: 'plan' is not one of network, positions, auto"),
+                             ("train.schedule=step", "train.schedule: 'step' is not one of cosine, constant"),
                              ("train.dagger_epochs=1", "train.dagger_epochs must lie in [2, train.epochs = 2]"),
                              ("train.dagger_epochs=two", "train.dagger_epochs must be comma-separated epoch numbers"),
-                             ("train.dagger_beta=1", "train.dagger_beta must be in [0, 1)"),
-                             ("train.command_epochs=-1", "train.command_epochs >= 0")):
+                             ("train.dagger_beta=1", "train.dagger_beta: must be in [0.0, 1.0), got 1.0"),
+                             ("train.command_epochs=-1", "train.command_epochs: must be >= 0, got -1")):
         code, _, err = call("train", "geeco", "--preset", "tiny", "--data", str(out / "dataset"), "--set", setting,
                             "--out", str(tmp_path / "r"))
         assert code == 2 and message in err, (setting, err)
@@ -524,7 +525,7 @@ def test_the_small_presets_push_controller_is_commanded_from_positions_and_train
     assert json.loads(stdout)["metrics"]["positions"] == "true"
     code, _, err = call("eval", "geeco", "--run", str(run), "--set", "eval.positions=guessed", "--out",
                         str(tmp_path / "bad"))
-    assert code == 2 and "eval.positions must be one of seen, true" in err, err
+    assert code == 2 and "eval.positions: 'guessed' is not one of seen, true" in err, err
 
 
 @pytest.mark.parametrize("skill, command, epochs, rounds", [

@@ -27,10 +27,11 @@ def one_thread():
     torch.set_num_threads(saved)
 
 
-def make_ctx(tmp_path=None, task="stackability", sets=(), **options) -> Context:
-    cfg = configs.resolve(StabilityConfig, PRESETS, "tiny", None, list(sets))
+def make_ctx(tmp_path=None, task="stackability", sets=(), agents=None) -> Context:
+    sets = [*sets, f"deploy.agents={agents}"] if agents else list(sets)
+    cfg = configs.resolve(StabilityConfig, PRESETS, "tiny", None, sets)
     return Context(method="stability", config=cfg, preset="tiny", backend="mujoco", scene="ccs", seed=0,
-                   run=tmp_path, options={"task": task, **options}, quiet=True)
+                   run=tmp_path, task=task, quiet=True)
 
 
 class FakePredictor(torch.nn.Module):

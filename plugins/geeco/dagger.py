@@ -31,6 +31,7 @@ from physint_cli.errors import BadInput
 
 from . import scenes as S
 from .checkpoint import episodes_of
+from .config import dagger_rounds
 from .control import LOCKSTEP, ClosedLoop, Policy, act_together, sims_for
 from .dataset import empty_episode, record_step
 from .expert import Expert, on_target
@@ -50,15 +51,7 @@ def parse_epochs(text: str, epochs: int, skill: str, command: str = "network") -
         if skill != "push" or command != "positions":
             return []
         return sorted({-(-epochs * k // 6) for k in AUTO_ROUNDS} & set(range(2, epochs + 1)))  # ceil(epochs k / 6)
-    if not str(text).strip():
-        return []
-    try:
-        rounds = sorted({int(v) for v in str(text).split(",") if v.strip()})
-    except ValueError:
-        raise BadInput(f"train.dagger_epochs must be comma-separated epoch numbers or auto, got {text!r}") from None
-    if rounds and not all(2 <= e <= epochs for e in rounds):
-        raise BadInput(f"train.dagger_epochs must lie in [2, train.epochs = {epochs}] (the controller trains on "
-                       f"the demonstrations first), got {text!r}")
+    rounds = dagger_rounds(text, epochs)  # the config's check: numbers in [2, epochs]
     if rounds and skill != "push":
         raise BadInput("train.dagger_epochs needs push demonstrations: the pick-and-place expert is a plan, "
                        "not a feedback law, so it cannot label the states a controller reaches")

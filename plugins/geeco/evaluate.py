@@ -25,7 +25,6 @@ from physint_cli.method import Context, Unit, unit_seed
 from . import scenes as S
 from .checkpoint import load_controller, with_optional
 
-POSITIONS = ("seen", "true")
 NAMES = {"push": {"reach": "REACH", "success": "PUSH"},
          "pickplace": {"reach": "REACH", "pick": "PICK", "success": "PLACE"}}
 
@@ -149,13 +148,6 @@ def summarize(results: list[dict[str, Any]], skill: str) -> dict[str, Any]:
 def evaluate(ctx: Context) -> dict[str, Any]:
     _, meta = load_controller(ctx.trained().path)
     cfg = ctx.config.eval  # --episodes N arrives as eval.episodes=N
-    if cfg.episodes < 1 or cfg.steps < 1 or cfg.per_unit < 1:
-        raise BadInput(f"eval.episodes (--episodes), eval.steps and eval.per_unit must be >= 1, got "
-                       f"{cfg.episodes}, {cfg.steps}, {cfg.per_unit}")
-    if not 1 <= cfg.side_by_side <= cfg.per_unit:
-        raise BadInput(f"eval.side_by_side must be in [1, eval.per_unit = {cfg.per_unit}], got {cfg.side_by_side}")
-    if cfg.positions not in POSITIONS:
-        raise BadInput(f"eval.positions must be one of {', '.join(POSITIONS)}, got {cfg.positions!r}")
     if cfg.positions == "true" and meta["kwargs"].get("command", "network") != "positions":
         raise BadInput("eval.positions=true feeds true positions to a command head: this controller was not "
                        "trained with train.command=positions")

@@ -27,11 +27,22 @@ def register_methods(register):
     register(Stability())
 
 
+def _stack_builder(subset: str):
+    def build(seed: int, **settings):
+        from .scenes import build_stack_scene
+
+        return build_stack_scene(subset, seed, **settings)
+
+    return build
+
+
 @hookimpl
 def register_scenes(register):
-    register(SceneInfo("cubes", method="stability", description="stacks of regular cubes (ShapeStacks Cubes)"))
-    register(SceneInfo("ccs", method="stability", description="stacks of cuboids, cylinders and spheres (ShapeStacks CCS)"))
-    register(SceneInfo("all", method="stability", description="both subsets (the thesis's test set)"))
+    # build(seed, height=None, kind="stable", cameras=6, resolution=128) -> (Scene, Scenario): reusable by other plugins
+    for name, description in (("cubes", "stacks of regular cubes (ShapeStacks Cubes)"),
+                              ("ccs", "stacks of cuboids, cylinders and spheres (ShapeStacks CCS)"),
+                              ("all", "both subsets (the thesis's test set)")):
+        register(SceneInfo(name, method="stability", build=_stack_builder(name), description=description))
 
 
 @hookimpl

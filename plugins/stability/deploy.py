@@ -42,8 +42,7 @@ Agents, compared on the same pools, Ts, appearances and seeds:
                stackability order and orientations, so only placement differs).
 ``none``       (balance only) the T without a counterweight: the control, should always fall.
 
-``ctx.options["agents"]`` (a list or comma-separated string) picks agents for scripts and tests;
-by default: ``predictor`` when there is a trained run, then ``oracle`` and ``random``.
+``deploy.agents`` (comma-separated) picks the agents; by default: ``predictor`` when there is a trained run, then ``oracle`` and ``random``.
 
 Episodes are work units run through ``ctx.map`` (``--workers`` / ``--ray`` parallelise them).
 Artifacts: ``stackability_area.png`` (Fig. 3.6), ``stackability_strip.png`` (Fig. 3.5),
@@ -526,7 +525,7 @@ _PREDICTORS: dict[tuple[str, str], tuple[Any, int]] = {}
 
 def _load_predictor(ctx: Context) -> tuple[Any, int]:
     """The trained network of ``ctx.source_run``, loaded once per process."""
-    from .train import load_predictor
+    from .checkpoint import load_predictor
 
     if ctx.source_run is None:
         raise BadInput("the predictor agent needs a trained stability run (--run)")
@@ -870,16 +869,12 @@ class _Recorder:
     def close(self) -> list[str]:
         if self.stem is None:
             return []
-        from physint_cli.artifacts import save_video
+        from physint_cli.artifacts import save_movie
 
         self.rec.close()
         self.files.append(self.stem.with_suffix(".rrd").name)
         if self.frames:
-            try:
-                path = save_video(self.stem.with_suffix(".mp4"), self.frames, fps=self.fps)
-            except Exception:  # no H.264 encoder: fall back to a GIF
-                path = save_video(self.stem.with_suffix(".gif"), self.frames[::2], fps=self.fps / 2)
-            self.files.append(path.name)
+            self.files.append(save_movie(self.stem, self.frames, fps=self.fps).name)
         return self.files
 
 
@@ -1308,7 +1303,7 @@ def _stackability_figures(ctx: Context, pool: list[StackObject], agents_out: dic
 # ==============================================================================================
 
 def _agents(ctx: Context) -> list[str]:
-    chosen = ctx.options.get("agents") or ctx.config.deploy.agents
+    chosen = ctx.config.deploy.agents
     if not chosen:
         return (["predictor"] if ctx.source_run is not None else []) + ["oracle", "random"]
     if isinstance(chosen, str):
@@ -1320,17 +1315,11 @@ def _agents(ctx: Context) -> list[str]:
 
 
 def deploy(ctx: Context) -> dict[str, Any]:
-    """Run the deployment task ``ctx.options['task']`` (default ``stackability``); JSON-ready metrics."""
-    task = ctx.options.get("task") or "stackability"
+    """Run the deployment task ``ctx.task`` (--task; default ``stackability``); JSON-ready metrics."""
+    task = ctx.task or "stackability"
     if task not in TASKS:
         raise unknown("deploy task for stability", task, TASKS)
-    episodes = int(ctx.config.deploy.episodes)  # --episodes N arrives as deploy.episodes=N
-    if episodes < 1:
-        raise BadInput(f"deploy.episodes (--episodes) must be >= 1, got {episodes}")
-    pool_key = "stackability_pool" if task == "stackability" else "pool"
-    pool_size = getattr(ctx.config.deploy, pool_key)
-    if pool_size < 2 and task != "balance":
-        raise BadInput(f"deploy.{pool_key} must be >= 2 objects, got {pool_size}")
+    episodes = ctx.config.deploy.episodes  # --episodes N arrives as deploy.episodes=N; >= 1 by the config
     agents = _agents(ctx)
     ctx.log(f"stability deploy: task {task}, agents {', '.join(agents)}")
     if task == "stackability":

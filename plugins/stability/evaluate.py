@@ -150,7 +150,7 @@ def occlusion_unit(ctx: Context, unit) -> list[dict[str, Any]]:
     """The occlusion study on one batch of test images (a work unit: runs in a worker or on Ray)."""
     from physint_cli.datasets import ShardedDataset
 
-    from .train import load_predictor
+    from .checkpoint import load_predictor
 
     e = ctx.config.eval
     model, input_size = load_predictor(ctx.source_run, "cpu")
@@ -214,7 +214,7 @@ def evaluate(ctx: Context) -> dict[str, Any]:
     from physint_cli.runs import Run
     from physint_cli.workflow import ensure_dataset
 
-    from .train import load_predictor
+    from .checkpoint import load_predictor
 
     method = get_plugins().method("stability")
     model, input_size = load_predictor(ctx.source_run, ctx.device)

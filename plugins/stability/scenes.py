@@ -631,3 +631,17 @@ def simulate(sim, scenario: Scenario, seconds: float = 2.0, move_threshold: floa
             if stop_early:
                 break
     return Outcome(first is None, first, max_disp, fall_time)
+
+
+def build_stack_scene(subset: str, seed: int, height: int | None = None, kind: str = "stable", cameras: int = 6,
+                      resolution: int = 128, randomise: bool = True) -> tuple[Scene, Scenario]:
+    """The registry's scene builder (``SceneInfo.build``) for subset ``subset``: a ShapeStacks scenario
+    drawn from ``seed`` (height drawn as Table 3.1 has it unless given; ``kind`` its Lemma-1 label: stable, VCOM or VPSF)
+    and its backend-neutral scene, so another method (relate) reuses the stacks without importing
+    this plugin: ``plugins.scene("stability", "ccs").build(seed=3)``."""
+    rng = np.random.default_rng(seed)
+    if height is None:
+        height = sample_height(rng, subset if subset != "all" else "ccs")
+    scenario = sample_scenario(rng, subset, height, kind)
+    return to_scene(scenario, rng, cameras=cameras, resolution=resolution, randomise=randomise), scenario
+

@@ -77,14 +77,14 @@ def train(ctx: Context) -> dict[str, Any]:
     import torch
 
     from physint_cli.datasets import ShardedDataset
-    from physint_cli.runs import Run
+    from physint_cli.artifacts import save_training_curves
     from physint_cli.training import fit
 
     from .augment import EvalTransform, TrainTransform
     from .model import adamw_cosine, logistic_loss, rmsprop_for
 
     cfg = ctx.config.train
-    name = ctx.options.get("model", cfg.model)
+    name = ctx.model or cfg.model
     model, kwargs = build_model(name, cfg.input_size, cfg.width)
     train_tf = TrainTransform(cfg.input_size) if cfg.augment else EvalTransform(cfg.input_size)
     # small preset: both splits (1.5 GB) are read once, not every epoch; paper preset: streamed
@@ -108,37 +108,16 @@ def train(ctx: Context) -> dict[str, Any]:
     elif cfg.optimizer == "adamw":  # the CPU default: AdamW, learning rate on a cosine over the epochs
         def make_optimizer(net):
             return adamw_cosine(net, lr=cfg.lr, weight_decay=cfg.weight_decay, epochs=cfg.epochs)
-    elif cfg.optimizer != "adam":
-        raise BadInput(f"train.optimizer must be adamw, adam or rmsprop, got {cfg.optimizer!r}")
-    result = fit(model, train_set, val_set, run=Run(ctx.run), epochs=cfg.epochs, batch_size=cfg.batch_size,
+    result = fit(model, train_set, val_set, run=ctx.output(), epochs=cfg.epochs, batch_size=cfg.batch_size,
                  lr=cfg.lr, weight_decay=cfg.weight_decay, loss_fn=loss_fn, metric_fn=accuracy, device=ctx.device,
-                 seed=ctx.seed, resume=bool(ctx.options.get("resume")), log=ctx.log, higher_is_better=True,
+                 seed=ctx.seed, resume=ctx.resume, log=ctx.log, higher_is_better=True,
                  num_workers=cfg.num_workers, make_optimizer=make_optimizer, precision=cfg.precision,
                  channels_last=True, batch_transform=BatchAugment(train_tf),
                  progress=not ctx.quiet,
                  meta={"method": "stability", "model": name, "kwargs": kwargs, "scene": ctx.scene})
-    _plot_curves(Run(ctx.run), result.history)
+    save_training_curves(ctx.output().artifact("training_curves.png"), result.history,
+                         loss="train logistic loss (Eq. 3.2)", metric="val accuracy", chance=0.5)
     return {"model": name, "epochs": result.epochs, "val_accuracy": result.best_metric,
             "train_images": len(train_set), "val_images": len(val_set), "scene": ctx.scene}
 
 
-def load_predictor(run_dir, device: str = "cpu"):
-    """The best checkpoint of a trained stability run, in eval mode, with its input size."""
-    from physint_cli.training import load_trained_model
-
-    model, meta = load_trained_model(run_dir, "stability", "stability predictor", device)
-    return model, int(meta["kwargs"]["in_size"])
-
-
-def _plot_curves(run, history) -> None:
-    from physint_cli.artifacts import save_plot
-
-    def draw(ax):
-        epochs = [h["epoch"] for h in history]
-        ax.plot(epochs, [h["train_loss"] for h in history], label="train logistic loss (Eq. 3.2)")
-        ax.plot(epochs, [h["val_metric"] for h in history], label="val accuracy")
-        ax.axhline(0.5, color="grey", ls=":", lw=1, label="chance")
-        ax.set_xlabel("epoch")
-        ax.legend()
-
-    save_plot(run.artifact("training_curves.png"), draw)
