@@ -18,9 +18,14 @@ install: $(VENV)/.installed
 
 demo: install
 	$(BIN)/physint backends
-	$(BIN)/physint pipeline freefall --backend mujoco --preset small --out physint_runs/demo
-	$(BIN)/physint view physint_runs/demo/deploy --save physint_runs/demo/deploy.rrd
-	@echo "Results: physint_runs/demo/{train,eval,deploy}/artifacts (PNG plots, GIF/MP4 video) and physint_runs/demo/deploy.rrd (rerun)"
+	$(BIN)/physint pipeline stability --scene all --preset demo --workers 2 --out physint_runs/demo
+	@echo "Results under physint_runs/demo/ (ShapeStacks, thesis Chapter 3):"
+	@echo "  eval/artifacts/predictions.png        predicted P(falls) on rendered test towers, green where right"
+	@echo "  eval/artifacts/occlusion_example.png  where the network looks: occlusion map of an unstable tower"
+	@echo "  eval/artifacts/accuracy.png           accuracy by subset, height and violation (Table 3.3), chance 50 %"
+	@echo "  train/artifacts/training_curves.png   loss and validation accuracy per epoch"
+	@echo "  deploy/artifacts/stackability_*.png   objects ranked by how well they stack (Figs. 3.5, 3.6)"
+	@echo "  */metrics.json                        the figures; physint view physint_runs/demo/dataset opens the data"
 
 test: install
 	$(BIN)/python -m pytest -q

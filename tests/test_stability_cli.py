@@ -66,6 +66,7 @@ def test_train_eval_deploy_tiny(tiny_dataset, tmp_path):
     assert table["images"] == 4
     run = Path(json.loads(stdout)["run"])
     assert (run / "artifacts" / "accuracy.png").exists() and (run / "artifacts" / "occlusion_example.png").exists()
+    assert (run / "artifacts" / "predictions.png").exists()  # P(falls) on rendered test towers
     code, stdout, err = call("deploy", "stability", "--run", str(tmp_path / "run"), "--task", "balance", "--json")
     assert code == 0, err
     deployed = json.loads(stdout)

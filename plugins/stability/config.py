@@ -1,6 +1,7 @@
-"""The stability method's config and its tiny / small / paper presets (thesis Chapter 3).
+"""The stability method's config and its tiny / demo / small / paper presets (thesis Chapter 3).
 
-``paper`` is the thesis's ShapeStacks: 20,000 scenarios split ~70/15/15, 16 cameras at 224x224,
+``demo`` is `make demo`'s: 1,500 scenarios at 48 px and a 16-wide CNN, about five minutes end to end on
+2 AVX2 cores. ``paper`` is the thesis's ShapeStacks: 20,000 scenarios split ~70/15/15, 16 cameras at 224x224,
 25 background textures, 6 object colours, 5 lighting conditions (Table 3.1); Inception-v4 trained
 from scratch with RMSProp for 80 epochs (Section 3.4.1); occlusion study on 1,500 images
 (Section 3.4.2); stacking over 50 episodes per scenario (Section 3.5.2).
@@ -89,6 +90,9 @@ PRESETS = {
              "data.textures": 4, "data.sim_seconds": 1.5, "train.epochs": 3, "train.batch_size": 16,
              "train.input_size": 32, "train.width": 8, "eval.occlusion_images": 4, "deploy.episodes": 1,
              "deploy.pool": 4, "deploy.stackability_pool": 4, "deploy.anneal_steps": 5},
+    "demo": {"data.scenarios": 1500, "data.cameras": 6, "data.resolution": 48, "train.epochs": 12,
+             "train.batch_size": 32, "train.input_size": 48, "train.width": 16, "eval.occlusion_images": 8,
+             "deploy.stackability_pool": 8, "deploy.anneal_steps": 10},  # `make demo`: ~5 min on 2 AVX2 cores
     "small": {},
     "paper": {"data.scenarios": 20000, "data.per_shard": 50, "data.cameras": 16, "data.resolution": 224,
               "train.model": "inception-v4", "train.epochs": 80, "train.batch_size": 32,

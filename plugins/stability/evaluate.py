@@ -233,7 +233,42 @@ def evaluate(ctx: Context) -> dict[str, Any]:
         metrics["cross_backend"] = {e.cross_backend: {"test_data": str(other),
                                                       **accuracy_table(test_split_scores(model, input_size, other, e.batch_size))}}
     _plots(run, metrics, occlusion["example"])
+    _prediction_grid(run, model, input_size, test_data, ctx.seed)
     return metrics
+
+
+def _prediction_grid(run, model, input_size: int, data, seed: int, n: int = 12) -> None:
+    """``predictions.png``: ``n`` test images of the first shard (a seeded sample, stable and unstable
+    alike) with the predicted P(unstable) and what the simulator did, green where the two agree."""
+    from physint_cli.artifacts import save_plot
+    from physint_cli.datasets import ShardedDataset
+
+    ds = ShardedDataset(data, "test", method="stability")
+    shard = next(iter(ds.shard_arrays(["image", "label"])), None)
+    ds.close()
+    if shard is None or len(shard["label"]) == 0:
+        return
+    chosen = np.random.default_rng(seed).permutation(len(shard["label"]))[:n]
+    images, labels = shard["image"][chosen], shard["label"][chosen]
+    scores = predict(model, images, input_size)
+    cols = min(6, len(chosen))
+    rows = -(-len(chosen) // cols)
+
+    def draw(ax):
+        ax.axis("off")
+        fig = ax.figure
+        for i, (image, label, p) in enumerate(zip(images, labels, scores)):
+            sub = fig.add_subplot(rows, cols, i + 1)
+            sub.imshow(image)
+            sub.set_xticks([])
+            sub.set_yticks([])
+            colour = "tab:green" if (p > 0.5) == (label == 1) else "tab:red"
+            for spine in sub.spines.values():
+                spine.set_edgecolor(colour)
+                spine.set_linewidth(3)
+            sub.set_title(f"P(falls) {p:.2f}\n{'fell' if label == 1 else 'stood'}", fontsize=8, color=colour)
+
+    save_plot(run.artifact("predictions.png"), draw, figsize=(1.8 * cols, 2.1 * rows))
 
 
 def _trained_scene(ctx: Context) -> str:
@@ -274,4 +309,6 @@ def _plots(run, metrics: dict[str, Any], example) -> None:
         overlay = (0.5 * image + 0.5 * 255 * rgb).astype(np.uint8)
         overlay[max(0, py - 1):py + 2, :, 1] = 255  # cross hair on the maximiser
         overlay[:, max(0, px - 1):px + 2, 1] = 255
-        save_image(run.artifact("occlusion_example.png"), np.concatenate([image, overlay], axis=1))
+        pair = np.concatenate([image, overlay], axis=1)
+        zoom = max(1, 256 // size)  # small images are enlarged (nearest neighbour) to be seen
+        save_image(run.artifact("occlusion_example.png"), pair.repeat(zoom, axis=0).repeat(zoom, axis=1))
