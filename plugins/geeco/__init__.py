@@ -12,6 +12,7 @@ implementations only; the chapter is told by the other modules:
     dataset.py     recording demonstrations (Section 6.4)
     dynamic.py     dynamic images (Eqs. 6.1, 6.2)
     model.py       GEECO-F, -D, -R and E2EVMC; the loss of Eq. 6.3
+    episode.py     the one episode loop: who acts (expert, controller, DAgger's mix), what is recorded
     control.py     closed-loop control and the REACH / PICK / PUSH / PLACE outcomes
     train.py       training on demonstration windows
     dagger.py      DAgger rounds for the push controller (not in the thesis)

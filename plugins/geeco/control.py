@@ -4,7 +4,8 @@
 on the left with copies of the oldest at the start of an episode (Appendix 6.A), and turns the
 network's outputs back into robot commands; :func:`act_together` steps several policies of one
 model with one forward pass. :func:`run_episode` runs one episode (:func:`run_episodes` several
-side by side, in lockstep) and scores it the thesis's way (:class:`ClosedLoop`):
+side by side, in lockstep) through the one episode loop (``episode.run``, the policies acting:
+:func:`controllers`) and scores it the thesis's way (``episode.ClosedLoop``):
 
 * REACH: the robot touched the object to move at least once;
 * PICK: the object was held: the fingers touch it with the gripper closed and it is lifted at
@@ -18,19 +19,18 @@ evaluation always finishes.
 
 from __future__ import annotations
 
-import time
 from collections import deque
 from typing import Any
 
 import numpy as np
 
 from . import scenes as S
-from .expert import Expert, on_target
+from .episode import ClosedLoop, Rollout, expert_drives, observe, run
+from .expert import on_target
 
 DEE_SCALE = 0.03  # network u_dEE is in units of the expert's free-space step (m)
 POS_SCALE = 0.1  # network positions are in decimetres from the table centre
 GRIP_COMMAND = (-1, 0, 1)  # class id -> gripper command (open, no-op, close)
-LIFTED = 0.02  # PICK: the object's bottom at least this far off the table
 LOCKSTEP = 16  # training's closed-loop episodes (validation, DAgger) stepped side by side, at most
 
 
@@ -170,92 +170,26 @@ def act_together(policies: list[Policy], observations: list[tuple]) -> list[np.n
             for i, (policy, buffer, obs) in enumerate(zip(policies, buffers, observations, strict=True))]
 
 
-def observe(sim, step: int, video=None) -> np.ndarray:
-    """The camera frame at ``step``, its background replaced by ``video`` if one is given
-    (``S.background_video``: BG:PRISMA's rainbow, or a demonstration's random background)."""
-    if video is None:
-        return sim.render("front").rgb
-    frame = sim.render("front", segmentation=True)
-    return S.replace_background(frame.rgb, frame.segmentation, step, video)
+def controllers(rollouts: list[ClosedLoop], observations: list[tuple]) -> list[np.ndarray]:
+    """``act`` for :func:`episode.run`: each closed loop's policy acts, one batch (:func:`act_together`)."""
+    return act_together([r.policy for r in rollouts], observations)
 
 
 def expert_target(sim, ep: S.Episode, resolution: int, horizon: int = 100) -> np.ndarray | None:
     """The target image of ``ep`` on this backend: the expert's last frame (None if it failed)."""
-    sim.reset(S.build_scene(ep, resolution))
-    expert = Expert(ep)
-    for _ in range(horizon):
-        sim.robot.act(expert.act(sim))
-    if not (on_target(ep, sim) and expert.done):
+    rollout = Rollout(sim, ep, resolution, expert=True, see=False)  # the expert reads the simulator
+    run([rollout], horizon, expert_drives())
+    if not (on_target(ep, sim) and rollout.expert.done):
         return None
-    return observe(sim, horizon, S.background_video(ep))
-
-
-class ClosedLoop:
-    """One closed-loop episode from ``ep``'s start state on ``sim``, scored as it runs: REACH, PICK,
-    a diverged command, and at the end PUSH / PLACE (:meth:`result`). ``true_positions``: a
-    ``command="positions"`` controller gets the simulator's object and target positions instead of
-    its network's estimates."""
-
-    def __init__(self, sim, ep: S.Episode, policy, target_rgb: np.ndarray | None, resolution: int,
-                 true_positions: bool = False):
-        self.sim, self.ep, self.true_positions = sim, ep, true_positions
-        sim.reset(S.build_scene(ep, resolution))
-        policy.reset(target_rgb)
-        self.video = S.background_video(ep)
-        self.reach = self.pick = self.diverged = self.gripper_closed = False
-        self.steps = 0
-        self.state = None  # the robot's state at the last observation
-
-    def observe(self, step: int) -> tuple:
-        """What the policy gets at ``step``: (rgb, joints, hand, truth), as :meth:`Policy.act` takes them."""
-        sim, ep = self.sim, self.ep
-        self.state = state = sim.robot.state()
-        truth = (sim.get_pose(ep.object)[0], ep.xy(ep.target)) if self.true_positions else None
-        return (observe(sim, step, self.video), np.asarray(state.joints, dtype=np.float32),
-                np.asarray(state.ee_pos), truth)
-
-    def apply(self, action: np.ndarray) -> bool:
-        """Execute ``action``; False (and the episode is over, a failure) if it is not finite."""
-        sim, ep = self.sim, self.ep
-        self.steps += 1
-        if not np.all(np.isfinite(action)):
-            self.diverged = True
-            return False
-        sim.robot.act(action)
-        if action[3] != 0:
-            self.gripper_closed = action[3] > 0
-        self.reach = self.reach or sim.robot.touching(ep.object)
-        if not self.pick and self.gripper_closed and sim.robot.touching(ep.object, "fingers"):
-            bottom = sim.get_pose(ep.object)[0][2] - S.object_half_height(ep.object) - S.TABLE_Z
-            self.pick = bottom > LIFTED
-        return True
-
-    def result(self, seconds: float) -> dict[str, Any]:
-        sim, ep = self.sim, self.ep
-        final_xy = sim.get_pose(ep.object)[0][:2]
-        return {"reach": bool(self.reach), "pick": bool(self.pick),
-                "success": bool((not self.diverged) and on_target(ep, sim)), "diverged": self.diverged,
-                "steps": self.steps, "seconds": seconds,
-                # how far the object is from its target's centre (m), at the start and at the end
-                "start_distance": float(np.linalg.norm(ep.xy(ep.object) - ep.xy(ep.target))),
-                "final_distance": float(np.linalg.norm(final_xy - ep.xy(ep.target))),
-                "final_xy": [round(float(v), 4) for v in final_xy]}  # where the object ended (m)
+    return observe(sim, horizon, rollout.video)
 
 
 def run_episode(sim, ep: S.Episode, policy: Policy, target_rgb: np.ndarray | None, steps: int, resolution: int,
                 on_step=None, true_positions: bool = False) -> dict[str, Any]:
     """One closed-loop episode (:class:`ClosedLoop`); ``on_step(t, rgb, action, policy)`` sees each step.
     ``policy`` has :class:`Policy`'s ``reset(target_rgb)`` and ``act(rgb, joints, hand, truth)``."""
-    loop = ClosedLoop(sim, ep, policy, target_rgb, resolution, true_positions)
-    t0 = time.perf_counter()
-    for step in range(steps):
-        observation = loop.observe(step)
-        action = policy.act(*observation)
-        if on_step is not None:
-            on_step(step, observation[0], action, policy)
-        if not loop.apply(action):
-            break
-    return loop.result(time.perf_counter() - t0)
+    hook = None if on_step is None else lambda t, _, observation, action: on_step(t, observation[0], action, policy)
+    return run_episodes([sim], [ep], [policy], [target_rgb], steps, resolution, true_positions, hook)[0]
 
 
 def sims_for(sims: list, make_sim, episodes: list[S.Episode], resolution: int) -> list:
@@ -266,18 +200,12 @@ def sims_for(sims: list, make_sim, episodes: list[S.Episode], resolution: int) -
 
 
 def run_episodes(sims: list, episodes: list[S.Episode], policies: list[Policy], targets: list, steps: int,
-                 resolution: int, true_positions: bool = False) -> list[dict[str, Any]]:
+                 resolution: int, true_positions: bool = False, on_step=None) -> list[dict[str, Any]]:
     """Episodes side by side, one simulation and one policy (of one model) each, stepped in lockstep
     so that their frames go through the network as one batch (:func:`act_together`); the results of
-    :func:`run_episode`, each episode's ``seconds`` its share of the wall time."""
-    loops = [ClosedLoop(*args, resolution, true_positions)
-             for args in zip(sims, episodes, policies, targets, strict=True)]
-    live = list(range(len(loops)))
-    t0 = time.perf_counter()
-    for step in range(steps):
-        if not live:
-            break
-        actions = act_together([policies[i] for i in live], [loops[i].observe(step) for i in live])
-        live = [i for i, action in zip(live, actions) if loops[i].apply(action)]
-    seconds = (time.perf_counter() - t0) / max(1, len(loops))
+    :func:`run_episode`, each episode's ``seconds`` its share of the wall time. ``on_step``: as
+    :func:`episode.run` takes it."""
+    loops = [ClosedLoop(sim, ep, resolution, policy, target, true_positions=true_positions)
+             for sim, ep, policy, target in zip(sims, episodes, policies, targets, strict=True)]
+    seconds = run(loops, steps, controllers, on_step) / max(1, len(loops))
     return [loop.result(seconds) for loop in loops]

@@ -32,9 +32,9 @@ from physint_cli.errors import BadInput
 from . import scenes as S
 from .checkpoint import episodes_of
 from .config import dagger_rounds
-from .control import LOCKSTEP, ClosedLoop, Policy, act_together, sims_for
-from .dataset import empty_episode, record_step
-from .expert import Expert, on_target
+from .control import LOCKSTEP, Policy, controllers, sims_for
+from .episode import Act, ClosedLoop, run
+from .expert import on_target
 
 ROLLOUT_FIELDS = ("rgb", "joints", "ee", "obj", "dee", "grip", "target", "goal")
 
@@ -67,31 +67,36 @@ def rollouts(sims: list, episodes: list[S.Episode], policies: list[Policy], targ
     ``on_target`` says whether the object ended on its target. None for an episode where the
     controller diverged."""
     resolution = targets[0].shape[0]
-    loops = [ClosedLoop(*args, resolution) for args in zip(sims, episodes, policies, targets, strict=True)]
-    experts = [Expert(ep) for ep in episodes]
-    outs = [empty_episode(horizon, resolution) for _ in episodes]
-    live = list(range(len(loops)))
-    for t in range(horizon):
-        if not live:
-            break
-        observations = [loops[i].observe(t) for i in live]
-        labels = [experts[i].act(sims[i]) for i in live]  # the expert's command in the state reached
-        for i, observation, label in zip(live, observations, labels):
-            record_step(outs[i], t, sims[i], episodes[i], loops[i].state, observation[0], label)
-        actions = act_together([policies[i] for i in live], observations)
-        for i, label, action in zip(list(live), labels, actions):
-            if np.all(np.isfinite(action)):
-                if beta > 0 and rngs[i].random() < beta:
-                    action = label
-                experts[i].follow(label, action)
-            if not loops[i].apply(action):  # diverged: no rollout
-                live.remove(i)
-                outs[i] = None
-    for i in live:
-        outs[i]["target"] = targets[i]
-        outs[i]["goal"] = np.asarray(episodes[i].xy(episodes[i].target), np.float32)  # where the object belongs (x, y), m
-        outs[i]["on_target"] = np.bool_(on_target(episodes[i], sims[i]))
+    loops = [ClosedLoop(sim, ep, resolution, policy, target, expert=True, record=horizon)
+             for sim, ep, policy, target in zip(sims, episodes, policies, targets, strict=True)]
+    run(loops, horizon, mixed(beta, dict(zip(loops, rngs or ()))))
+    outs: list[dict[str, np.ndarray] | None] = []
+    for loop, target in zip(loops, targets):
+        if loop.diverged:  # no rollout
+            outs.append(None)
+            continue
+        ep = loop.ep
+        outs.append(dict(loop.arrays, target=target,
+                         goal=np.asarray(ep.xy(ep.target), np.float32),  # where the object belongs (x, y), m
+                         on_target=np.bool_(on_target(ep, loop.sim))))
     return outs
+
+
+def mixed(beta: float, coins: dict) -> Act:
+    """``act`` of a DAgger rollout: the controller's command, or with probability ``beta`` (a draw
+    from the rollout's generator in ``coins``) the expert's; the expert's plan follows the hand that
+    was actually sent (``Expert.follow``)."""
+
+    def act(loops: list[ClosedLoop], observations: list[tuple]) -> list[np.ndarray]:
+        actions = controllers(loops, observations)
+        for k, (loop, action) in enumerate(zip(loops, actions)):
+            if np.all(np.isfinite(action)):
+                if beta > 0 and coins[loop].random() < beta:
+                    actions[k] = action = loop.command
+                loop.expert.follow(loop.command, action)
+        return actions
+
+    return act
 
 
 def aggregation_round(make_sim, model, demos: dict[str, np.ndarray], scene: str, episodes: int, horizon: int,

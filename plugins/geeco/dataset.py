@@ -20,11 +20,10 @@ from physint_cli.errors import BadInput
 from physint_cli.method import Context, Unit, split_units
 
 from . import scenes as S
-from .control import observe
-from .expert import Expert, on_target
+from .episode import Rollout, expert_drives, run
+from .expert import on_target
 
 SPLITS = {"train": 2, "val": 1, "test": 1}  # 2:1:1
-GRIP_CLASS = {-1: 0, 0: 1, 1: 2}  # gripper command -> class id (open, no-op, close)
 SETTLE_STEPS = 4  # the hand must be parked this many steps before the demonstration ends
 
 
@@ -54,41 +53,11 @@ def record(sim, ep: S.Episode, horizon: int, noise: float = 0.0, rng: np.random.
     """Run the expert from ``ep``'s start state for ``horizon`` steps on a live simulation; with
     ``noise`` > 0 the executed displacements are perturbed (``Expert.perturb``), the recorded
     commands are the expert's own. The frames show ``ep``'s background video, if it has one."""
-    expert = Expert(ep)
-    out = empty_episode(horizon, ep_resolution(sim))
-    video = S.background_video(ep)
-    done_at = None
-    for t in range(horizon):
-        state, rgb = sim.robot.state(), observe(sim, t, video)
-        action = expert.act(sim)
-        record_step(out, t, sim, ep, state, rgb, action)
-        if noise > 0:
-            action = expert.perturb(action, rng.normal(0.0, noise, 3))
-        sim.robot.act(action)
-        if expert.done and done_at is None:
-            done_at = t
+    rollout = Rollout(sim, ep, expert=True, record=horizon)
+    run([rollout], horizon, expert_drives(noise, rng))
+    done_at = rollout.done_at
     ok = on_target(ep, sim) and done_at is not None and done_at <= horizon - SETTLE_STEPS
-    return out, ok
-
-
-def empty_episode(horizon: int, resolution: int) -> dict[str, np.ndarray]:
-    """The per-step arrays of one recorded episode, zeroed."""
-    return {"rgb": np.zeros((horizon, resolution, resolution, 3), np.uint8),
-            "joints": np.zeros((horizon, 7), np.float32), "ee": np.zeros((horizon, 3), np.float32),
-            "obj": np.zeros((horizon, 3), np.float32), "dee": np.zeros((horizon, 3), np.float32),
-            "grip": np.zeros(horizon, np.int8)}
-
-
-def record_step(out: dict[str, np.ndarray], t: int, sim, ep: S.Episode, state, rgb: np.ndarray,
-                command: np.ndarray) -> None:
-    """Step ``t``: the frame, the robot's state and object position, and the expert's ``command``."""
-    out["rgb"][t], out["joints"][t], out["ee"][t] = rgb, state.joints, state.ee_pos
-    out["obj"][t] = sim.get_pose(ep.object)[0]
-    out["dee"][t], out["grip"][t] = command[:3], GRIP_CLASS[int(command[3])]
-
-
-def ep_resolution(sim) -> int:
-    return sim.scene.camera("front").width
+    return rollout.arrays, ok
 
 
 def demonstrations(ctx: Context, unit: Unit, sim=None):

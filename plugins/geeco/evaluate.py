@@ -77,7 +77,7 @@ def eval_unit(ctx: Context, unit: Unit) -> list[dict[str, Any]]:
 
 
 def _eval_episodes(ctx: Context, unit: Unit) -> list[dict[str, Any]]:
-    from .control import Policy, expert_target, run_episode, run_episodes, sims_for
+    from .control import Policy, expert_target, run_episodes, sims_for
 
     model, meta = load_controller(ctx.trained().path, ctx.device)
     cfg = ctx.config.eval
@@ -111,13 +111,8 @@ def _eval_episodes(ctx: Context, unit: Unit) -> list[dict[str, Any]]:
                 continue
             episodes = [ep for _, ep, _ in ready]
             running = sims_for(sims, ctx.make_sim, episodes, resolution)
-            true_positions = cfg.positions == "true"
-            if group == 1:
-                results = [run_episode(running[0], episodes[0], policies[0], ready[0][2], cfg.steps, resolution,
-                                       true_positions=true_positions)]
-            else:
-                results = run_episodes(running, episodes, policies[:len(ready)], [t for _, _, t in ready],
-                                       cfg.steps, resolution, true_positions)
+            results = run_episodes(running, episodes, policies[:len(ready)], [t for _, _, t in ready], cfg.steps,
+                                   resolution, cfg.positions == "true")
             out += [{"index": spec["index"], "task": ep.goal_text(), **result}
                     for (spec, ep, _), result in zip(ready, results, strict=True)]
     finally:
