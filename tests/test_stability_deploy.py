@@ -15,6 +15,7 @@ from physint_cli import config as configs
 from physint_cli.errors import BadInput
 from physint_cli.method import Context, Unit, unit_seed
 from physint_plugins.stability import deploy as D
+from physint_plugins.stability.deploy import scorers
 from physint_plugins.stability.config import PRESETS, StabilityConfig
 from physint_plugins.stability.physics import StackObject, stack_up
 
@@ -174,7 +175,7 @@ def test_deploy_rejects_an_unknown_task():
 
 
 def test_deploy_runs_every_task_with_a_fake_predictor_and_writes_its_artifacts(tmp_path, monkeypatch):
-    monkeypatch.setattr(D, "_load_predictor", lambda ctx: (FakePredictor().eval(), 32))
+    monkeypatch.setattr(scorers, "_load_predictor", lambda ctx: (FakePredictor().eval(), 32))
     sets = ["deploy.pool=3", "deploy.stackability_pool=3", "deploy.anneal_steps=3", "deploy.cameras=2"]
     stack = D.deploy(make_ctx(tmp_path, "stack", sets, agents="predictor,oracle,random"))
     assert set(stack["scenarios"]) == {"cubes", "cuboids", "ccs"}

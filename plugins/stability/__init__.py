@@ -13,7 +13,7 @@ implementations only; the chapter is told by the other modules:
     augment.py   physically plausible augmentation
     train.py     training (Section 3.4.1)
     evaluate.py  accuracy (Table 3.3) and instability localisation (Section 3.4.2, Table 3.4)
-    deploy.py    stackability, stacking, counterbalancing (Section 3.5)
+    deploy/      stackability, stacking, counterbalancing (Section 3.5), a module each
 """
 
 from physint_cli import hookimpl
