@@ -17,7 +17,7 @@ float sums are ordered otherwise than a batch of one's. Two measurements:
    exact McNemar test on them.
 
 Prints both tables; each evaluation's run is kept under ``--out`` (default: a temporary folder).
-Nothing here is a product path (docs/geeco.md, session 25).
+Nothing here is a product path (docs/geeco.md, "Known deviations": eval.side_by_side).
 """
 
 from __future__ import annotations

@@ -54,3 +54,15 @@ def call(*args: str) -> tuple[int, str, str]:
     finally:
         cli._RESULTS = saved
     return code, out.getvalue(), err.getvalue()
+
+
+@pytest.fixture(scope="module")
+def one_torch_thread():
+    """torch on one thread for a test module (floating-point sums in a fixed order), restored after."""
+    import torch
+
+    saved = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(saved)
+

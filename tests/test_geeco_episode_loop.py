@@ -33,12 +33,7 @@ EXPECTED = {  # from the five episode loops before the refactor (commit 99be11a)
 }
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    saved = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(saved)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")  # torch on one thread: results independent of the cores
 
 
 def digest(value) -> str:

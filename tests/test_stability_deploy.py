@@ -20,12 +20,7 @@ from physint_plugins.stability.config import PRESETS, StabilityConfig
 from physint_plugins.stability.physics import StackObject, stack_up
 
 
-@pytest.fixture(autouse=True, scope="module")
-def one_thread():
-    saved = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(saved)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")  # torch on one thread: results independent of the cores
 
 
 def make_ctx(tmp_path=None, task="stackability", sets=(), agents=None) -> Context:
