@@ -190,6 +190,21 @@ def test_encoders_halve_their_maps_as_table_6a1_unless_told_to_keep_a_spatial_ma
     assert side(128, 4, 2) == 4 and side(16, 4, 2) == 4 and side(512, 1, 2) == 2  # train.stem_stride
 
 
+@pytest.mark.parametrize("width", [0.25, 0.375, 0.5, 0.6, 1.0])
+def test_group_normalisation_takes_any_encoder_width(width):
+    """Each convolution's channels fall into up to 8 groups of at least 4 that divide them (0.375 gives
+    18 channels in the second layer, which 4 groups do not divide), and the groups normalise."""
+    from physint_plugins.geeco.model import Encoder
+
+    encoder = Encoder(width, norm=True, image_size=32, min_side=4)
+    for conv, norm in zip(encoder.convs, encoder.norms):
+        channels = conv.out_channels
+        assert channels % norm.num_groups == 0 and 1 <= norm.num_groups <= 8
+        assert norm.num_groups == min(8, channels // 4) or channels % min(8, channels // 4)
+    out = encoder(torch.rand(2, 3, 32, 32))
+    assert out.shape[:2] == (2, encoder.convs[-1].out_channels) and torch.isfinite(out).all()
+
+
 def test_a_strided_stem_gives_a_128_px_frame_the_maps_of_a_64_px_one():
     """train.stem_stride=2: the first convolution halves a 128 px frame, so every later layer
     works on maps of the sizes a 64 px frame gets with Table 6.A.1's strides (and costs as much)."""

@@ -43,9 +43,9 @@ AUTO_ROUNDS = (3, 4, 5)  # train.dagger_epochs=auto: rounds before the epochs at
 
 
 def parse_epochs(text: str, epochs: int, skill: str, command: str = "network") -> list[int]:
-    """``train.dagger_epochs`` ("6,8,10") as sorted epoch numbers; bad values exit 2. ``auto``: for a
+    """``train.dagger_epochs`` ("5,7,9") as sorted epoch numbers; bad values exit 2. ``auto``: for a
     positions controller of pushing (``command``), rounds before the epochs at 1/2, 2/3 and 5/6 of
-    the training (6, 8, 10 of 12; none before epoch 2), else none: for network commands the rounds
+    the training (5, 7, 9 of 10; none before epoch 2), else none: for network commands the rounds
     did not help (docs/geeco.md, session 12)."""
     if str(text).strip() == "auto":
         if skill != "push" or command != "positions":

@@ -90,7 +90,7 @@ class Encoder(nn.Module):
         for i, (filters, stride) in enumerate(zip(ENCODER_FILTERS, strides(image_size, min_side, stem_stride))):
             out = max(4, int(round(filters * width)))
             layers.append(nn.Conv2d(channels, out, 3, stride=stride, padding=1))
-            norms.append(nn.GroupNorm(min(8, out // 4), out) if norm else nn.Identity())
+            norms.append(nn.GroupNorm(_groups(out), out) if norm else nn.Identity())
             channels = out
         self.convs = nn.ModuleList(layers)
         self.norms = nn.ModuleList(norms)
@@ -103,6 +103,15 @@ class Encoder(nn.Module):
             else:  # ReLU in place: neither GroupNorm's nor a convolution's backward needs its output
                 x = F.relu_(norm(conv(x)))
         return x
+
+
+def _groups(channels: int) -> int:
+    """Groups of the group normalisation after a convolution: up to 8 of at least 4 channels each,
+    a divisor of ``channels`` (so any ``width`` works: 0.375 gives 18 channels, in 3 groups)."""
+    groups = max(1, min(8, channels // 4))
+    while channels % groups:
+        groups -= 1
+    return groups
 
 
 def strides(size: int, min_side: int = 1, stem_stride: int = 1) -> list[int]:
