@@ -47,8 +47,8 @@ class TrainConfig:
     lr: float = field_(2e-3, "peak learning rate (rmsprop: the paper's schedule starts at 0.045)", gt=0.0)
     weight_decay: float = field_(0.05, "weight decay (decoupled for adamw, L2 otherwise)", ge=0.0)
     augment: bool = field_(True, "colour jitter, aspect ratio, crops, mirror, small rotations")
-    width: int = field_(20, "channels of the compact CNN's first layer (20: the small preset, 23 min on 2 AVX2 "
-                                "cores in fp32; 32: the earlier small preset, docs/stability.md)", ge=1)
+    width: int = field_(20, "channels of the compact CNN's first layer (20 sizes the small preset for 2 AVX2 "
+                                "cores; 32 was the earlier one, docs/stability.md)", ge=1)
     input_size: int = field_(128, "network input side in pixels (each model has its own least)", ge=1)
     num_workers: int = field_(0, "DataLoader worker processes", ge=0)
     precision: Literal["fp32", "bf16", "auto"] = field_("auto", "fp32, bf16, or auto: bf16 autocast where the hardware has native bf16 "

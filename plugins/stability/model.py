@@ -110,7 +110,8 @@ def compact_cnn(in_size: int = 64, width: int = 32, dropout: float = 0.3) -> nn.
     layout away, left an earlier version of this network at chance on ShapeStacks while this one
     learns. Then FC(128)-ReLU and one logit.
     ``width=20`` (the small preset) → 330,917 parameters, ``width=32`` → 688,289. At
-    ``in_size >= 128`` the first convolution has stride 2, so the cost and the receptive field relative to the image stay about those at 64.
+    ``in_size >= 128`` the first convolution has stride 2, so the cost and the receptive field
+    relative to the image stay about those at 64.
     Output: logits ``(N,)``.
     """
     _check_size("compact_cnn", in_size, 16)
