@@ -67,7 +67,8 @@ class TrainConfig:
     aux_weight: float = field_(1.0, "lambda of Eq. 6.3: weight of the auxiliary position losses (thesis: 0 or 1)",
                                ge=0.0)
     width: float = field_(0.375, "encoder filter multiplier (1.0: Table 6.A.1; 0.375 sizes the small preset for "
-                                        "2 AVX2 cores, docs/geeco.md)", gt=0.0)
+                                        "2 AVX2 cores, 0.25 for a slower CPU: docs/geeco.md)",
+                               gt=0.0)
     norm: bool = field_(True, "group normalisation after each convolution (not in Table 6.A.1; the plain "
                               "encoders learned the commands slower, see docs/geeco.md)")
     min_side: int = field_(8, "the encoders stop halving their maps at this side (1: Table 6.A.1's strides, whose "
