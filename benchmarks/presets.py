@@ -13,16 +13,16 @@ validation and, for GEECO, any DAgger round before the epoch, so a projection fr
 before the first round is a lower bound: give ``--run`` of a finished training for its measured
 total. With ``--run`` it reads the runs' ``metrics.jsonl``.
 
-The CPU is printed with its vector extensions; set ``ATEN_CPU_CAPABILITY=avx2
-ONEDNN_MAX_CPU_ISA=AVX2`` to hold torch and oneDNN to AVX2 on a newer CPU (the table says so), and
-``--set train.precision=fp32`` for the fp32 figures of the issue.
+Each run's CPU is printed with its vector extensions, as its run.json recorded them; set
+``ATEN_CPU_CAPABILITY=avx2 ONEDNN_MAX_CPU_ISA=AVX2`` to hold torch and oneDNN to AVX2 on a newer
+CPU (the run records that too), and ``--set train.precision=fp32`` for the fp32 figures of the
+issue.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import os
 import signal
 import subprocess
 import sys
@@ -30,26 +30,9 @@ import tempfile
 import time
 from pathlib import Path
 
+from physint_cli.datasets import describe_machine, machine
+
 GOAL_MINUTES = 45.0
-
-
-def cpu_description() -> str:
-    """The CPU's model name, its widest vector extensions, and any ISA cap set in the environment."""
-    name, flags = "unknown CPU", set()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            key, _, value = line.partition(":")
-            if key.strip() == "model name" and name == "unknown CPU":
-                name = value.strip()
-            elif key.strip() == "flags" and not flags:
-                flags = set(value.split())
-    except OSError:
-        pass
-    isa = [label for f, label in (("avx2", "AVX2"), ("avx512f", "AVX-512"), ("avx512_bf16", "AVX512-BF16"),
-                              ("amx_tile", "AMX")) if f in flags]
-    text = f"{name}, {os.cpu_count()} cores, {'/'.join(isa) or 'no AVX2'}"
-    caps = [f"{k}={os.environ[k]}" for k in ("ATEN_CPU_CAPABILITY", "ONEDNN_MAX_CPU_ISA") if os.environ.get(k)]
-    return text + (f" (held to {', '.join(caps)})" if caps else "")
 
 
 def read_run(run: Path) -> dict:
@@ -60,7 +43,9 @@ def read_run(run: Path) -> dict:
         if (run / "metrics.jsonl").is_file() else []
     saved = yaml.safe_load((run / "config.yaml").read_text()) if (run / "config.yaml").is_file() else {}
     train = saved.get("config", {}).get("train", {})
+    info = json.loads((run / "run.json").read_text()) if (run / "run.json").is_file() else {}
     return {"run": str(run), "method": saved.get("method", "?"), "preset": saved.get("preset", "?"),
+            "machine": describe_machine(info["machine"]) if "machine" in info else "not recorded",
             "seconds": [float(e["seconds"]) for e in epochs if "seconds" in e],
             "best": max((e["val_metric"] for e in epochs), default=None),
             "epochs": int(train.get("epochs", len(epochs))), "precision": train.get("precision", "?"),
@@ -114,7 +99,8 @@ def main() -> None:
         runs.append(time_training(args.method, args.data, args.set, args.epochs_to_time, out))
     if not runs:
         p.error("give --method and --data to time a training, or --run RUN")
-    print(f"CPU: {cpu_description()}; goal: each small preset's training within {GOAL_MINUTES:.0f} min")
+    print(f"this CPU: {describe_machine(machine())}; goal: each small preset's training within "
+          f"{GOAL_MINUTES:.0f} min")
     print(f"{'method':10s} {'preset':7s} {'precision':9s} {'width':>5s} {'epochs':>10s} {'first s':>8s} {'later s':>8s} "
           f"{'total min':>10s} {'/ goal':>7s} {'best val':>8s}  run")
     for run in runs:
@@ -129,6 +115,7 @@ def main() -> None:
               f"{total if total is not None else float('nan'):10.1f} "
               f"{(total or float('nan')) / GOAL_MINUTES:6.2f}x "
               f"{r['best'] if r['best'] is not None else float('nan'):8.4f}  {r['run']} ({kind})")
+        print(f"{'':10s} trained on: {r['machine']}")
 
 
 if __name__ == "__main__":

@@ -18,6 +18,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import platform
 import time
 from collections import OrderedDict
 from pathlib import Path
@@ -153,6 +154,40 @@ def versions(*distributions: str) -> dict[str, str]:
         except PackageNotFoundError:
             pass
     return out
+
+
+VECTOR_EXTENSIONS = (("avx2", "AVX2"), ("avx512f", "AVX-512"), ("avx512_bf16", "AVX512-BF16"), ("amx_tile", "AMX"))
+ISA_CAPS = ("ATEN_CPU_CAPABILITY", "ONEDNN_MAX_CPU_ISA")  # hold torch's and oneDNN's kernels to an older ISA
+
+
+def machine(cpuinfo: str | None = None) -> dict[str, Any]:
+    """The CPU a run or a dataset was made on, as its figures' provenance: model name, cores, the
+    vector extensions that decide how fast it trains (``resolve_precision`` picks bf16 on AMX or
+    AVX512-BF16), and any cap of torch's and oneDNN's kernels set in the environment (``held_to``:
+    a newer CPU held to AVX2, say). ``cpuinfo``: the text of /proc/cpuinfo (read when None)."""
+    if cpuinfo is None:
+        try:
+            cpuinfo = Path("/proc/cpuinfo").read_text()
+        except OSError:
+            cpuinfo = ""
+    name, flags = None, set()
+    for line in cpuinfo.splitlines():
+        key, _, value = line.partition(":")
+        if key.strip() == "model name" and name is None:
+            name = value.strip()
+        elif key.strip() == "flags" and not flags:
+            flags = set(value.split())
+    return {"cpu": name or platform.processor() or "unknown CPU", "cores": os.cpu_count(),
+            "isa": [label for flag, label in VECTOR_EXTENSIONS if flag in flags],
+            "held_to": {k: os.environ[k] for k in ISA_CAPS if os.environ.get(k)}}
+
+
+def describe_machine(m: dict[str, Any]) -> str:
+    """``machine()`` in one line: "Intel(R) Xeon(R) Processor, 2 cores, AVX2/AVX-512 (held to
+    ATEN_CPU_CAPABILITY=avx2)"."""
+    text = f"{m.get('cpu', 'unknown CPU')}, {m.get('cores', '?')} cores, {'/'.join(m.get('isa') or []) or 'no AVX2'}"
+    held = m.get("held_to") or {}
+    return text + (f" (held to {', '.join(f'{k}={v}' for k, v in held.items())})" if held else "")
 
 
 def start_manifest(root: Path, header: dict[str, Any]) -> dict[str, Any]:

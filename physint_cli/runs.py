@@ -3,7 +3,8 @@
 Every train, eval and deploy writes a run directory::
 
     run.json          method, verb, backend, scene, preset, seed, command line, versions,
-                      git commit, dataset, source run, times, status
+                      machine (CPU, cores, vector extensions, ISA caps), git commit, dataset,
+                      source run, times, status
     config.yaml       the resolved config
     checkpoints/      best.pt: the trained model that eval and deploy load (Run.save_trained /
                       Run.load_trained; training.fit writes it at every better epoch), and
@@ -30,7 +31,7 @@ from typing import Any
 
 import yaml
 
-from .datasets import atomic_write_bytes, atomic_write_json, check_writable, versions
+from .datasets import atomic_write_bytes, atomic_write_json, check_writable, machine, versions
 from .errors import BadInput
 
 CHECKPOINTS = "checkpoints"
@@ -71,7 +72,7 @@ class Run:
         info = {
             "method": ctx.method, "verb": verb, "backend": ctx.backend, "scene": ctx.scene, "preset": ctx.preset,
             "seed": ctx.seed, "device": ctx.device, "command": sys.argv, "cwd": os.getcwd(),
-            "versions": versions("mujoco", "pybullet", "robosuite"), "git_commit": git_commit(),
+            "versions": versions("mujoco", "pybullet", "robosuite"), "machine": machine(), "git_commit": git_commit(),
             "data": str(ctx.data) if ctx.data else None,
             "source_run": str(ctx.source_run) if ctx.source_run else None,
             "options": ctx.verb_options(), "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"), "status": "running",

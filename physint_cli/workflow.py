@@ -16,7 +16,8 @@ from pathlib import Path
 from typing import Any
 
 from . import config as configs
-from .datasets import check_writable, finish_manifest, read_manifest, shard_done, start_manifest, versions, write_shard
+from .datasets import (check_writable, finish_manifest, machine, read_manifest, shard_done, start_manifest, versions,
+                       write_shard)
 from .errors import BadInput, RunFailure, unknown
 from .method import Context, Unit
 from .plugins import get_plugins
@@ -120,7 +121,7 @@ def generate_dataset(method: Any, ctx: Context, out: Path, splits: tuple[str, ..
         units = [u for u in units if u.split in splits]
     header = {"method": ctx.method, "scene": ctx.scene, "backend": ctx.backend, "preset": ctx.preset, "seed": ctx.seed,
               "config": configs.to_dict(ctx.config), "units": len(units), "plugin": method.plugin,
-              "versions": versions("mujoco", "pybullet", "robosuite")}
+              "versions": versions("mujoco", "pybullet", "robosuite"), "machine": machine()}
     if splits:
         header["only_splits"] = sorted(splits)
     manifest = start_manifest(out, header)

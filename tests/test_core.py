@@ -147,6 +147,26 @@ def test_parallel_workers_give_the_same_dataset(toy_plugins, tmp_path):
         assert np.array_equal(a.column("y"), b.column("y"))
 
 
+def test_machine_names_the_cpu_its_vector_extensions_and_any_isa_cap(monkeypatch):
+    """The provenance each run and dataset records: an AVX2-only CPU reads as such, and a newer one
+    held to AVX2 through torch's and oneDNN's variables says so."""
+    from physint_cli.datasets import describe_machine, machine
+
+    zen3 = "processor\t: 0\nmodel name\t: AMD EPYC 7B13\nflags\t\t: fpu sse2 avx avx2 fma\n\nprocessor\t: 1\n"
+    monkeypatch.delenv("ATEN_CPU_CAPABILITY", raising=False)
+    monkeypatch.delenv("ONEDNN_MAX_CPU_ISA", raising=False)
+    m = machine(zen3)
+    assert m["cpu"] == "AMD EPYC 7B13" and m["isa"] == ["AVX2"] and m["held_to"] == {}
+    assert describe_machine(m).endswith("cores, AVX2")
+    xeon = "model name\t: Intel Xeon\nflags\t\t: avx2 avx512f avx512_bf16 amx_tile\n"
+    monkeypatch.setenv("ATEN_CPU_CAPABILITY", "avx2")
+    m = machine(xeon)
+    assert m["isa"] == ["AVX2", "AVX-512", "AVX512-BF16", "AMX"]
+    assert m["held_to"] == {"ATEN_CPU_CAPABILITY": "avx2"}
+    assert "(held to ATEN_CPU_CAPABILITY=avx2)" in describe_machine(m)
+    assert machine("")["isa"] == [] and "no AVX2" in describe_machine(machine(""))
+
+
 # -- train / eval / deploy -------------------------------------------------------------------------
 
 def test_train_caches_dataset_resumes_and_evaluates(toy_plugins, physint_home):
@@ -157,8 +177,9 @@ def test_train_caches_dataset_resumes_and_evaluates(toy_plugins, physint_home):
     for name in ("run.json", "config.yaml", "metrics.json", "metrics.jsonl", "checkpoints/last.pt", "checkpoints/best.pt"):
         assert (run / name).exists(), name
     info = json.loads((run / "run.json").read_text())
-    for key in ("command", "versions", "seed", "git_commit", "data", "preset"):
+    for key in ("command", "versions", "machine", "seed", "git_commit", "data", "preset"):
         assert key in info
+    assert info["machine"]["cores"] == os.cpu_count()
     assert len((run / "metrics.jsonl").read_text().splitlines()) == 3
     # the dataset was generated once, under the home, and is reused
     cached = list((physint_home / "datasets").iterdir())
