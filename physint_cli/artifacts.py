@@ -55,6 +55,26 @@ def save_movie(stem: Path, frames: list[np.ndarray], fps: float = 25.0) -> Path:
         return save_video(stem.with_suffix(".gif"), list(frames)[::2], fps=fps / 2)
 
 
+def read_rgb_image(path: Path, size: int, what: str = "--target", who: str = "the model sees") -> np.ndarray:
+    """An RGB image file of ``size`` x ``size`` pixels as uint8 (H, W, 3); anything else exits 2
+    with one line naming ``what`` (the option) and what ``who`` expects."""
+    import imageio.v3 as iio
+
+    from .errors import BadInput
+
+    try:
+        image = np.asarray(iio.imread(path, plugin="pillow"))
+    except Exception as exc:  # imageio raises many kinds for a file that is not an image
+        raise BadInput(f"{what} {path}: not an image ({type(exc).__name__})") from None
+    if image.ndim == 3 and image.shape[2] == 4:
+        image = image[..., :3]
+    if image.ndim != 3 or image.shape[2] != 3:
+        raise BadInput(f"{what} {path}: expected an RGB image, got an array of shape {image.shape}")
+    if image.shape[:2] != (size, size):
+        raise BadInput(f"{what} {path}: {who} {size}x{size} images, got {image.shape[1]}x{image.shape[0]}")
+    return image.astype(np.uint8)
+
+
 def save_training_curves(path: Path, history: list[dict[str, Any]], loss: str, metric: str,
                          chance: float | None = None) -> Path:
     """The training curves of ``fit``'s history (``epoch``, ``train_loss``, ``val_metric`` a point)

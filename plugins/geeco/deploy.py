@@ -47,20 +47,9 @@ def _doable(ep: S.Episode, task: tuple[int, int]) -> bool:
 
 
 def read_target(path: Path, resolution: int) -> np.ndarray:
-    import imageio.v3 as iio
+    from physint_cli.artifacts import read_rgb_image
 
-    try:
-        image = np.asarray(iio.imread(path, plugin="pillow"))
-    except Exception as exc:  # imageio raises many kinds for a file that is not an image
-        raise BadInput(f"--target {path}: not an image ({type(exc).__name__})") from None
-    if image.ndim == 3 and image.shape[2] == 4:
-        image = image[..., :3]
-    if image.ndim != 3 or image.shape[2] != 3:
-        raise BadInput(f"--target {path}: expected an RGB image, got an array of shape {image.shape}")
-    if image.shape[:2] != (resolution, resolution):
-        raise BadInput(f"--target {path}: the controller sees {resolution}x{resolution} images, got "
-                       f"{image.shape[1]}x{image.shape[0]}")
-    return image.astype(np.uint8)
+    return read_rgb_image(path, resolution, "--target", "the controller sees")
 
 
 def deploy(ctx: Context) -> dict[str, Any]:

@@ -14,27 +14,19 @@ faster on a CPU; the control rate is then their steps per second together.
 
 from __future__ import annotations
 
-import math
 from typing import Any
 
 import numpy as np
 
 from physint_cli.errors import BadInput
 from physint_cli.method import Context, Unit, unit_seed
+from physint_cli.stats import ci95
 
 from . import scenes as S
 from .checkpoint import load_controller, with_optional
 
 NAMES = {"push": {"reach": "REACH", "success": "PUSH"},
          "pickplace": {"reach": "REACH", "pick": "PICK", "success": "PLACE"}}
-
-
-def ci95(successes: int, n: int) -> float:
-    """Half-width of the 95 % normal-approximation binomial confidence interval."""
-    if n == 0:
-        return float("nan")
-    p = successes / n
-    return 1.96 * math.sqrt(p * (1 - p) / n)
 
 
 def plan_episodes(ctx: Context, meta: dict[str, Any], count: int) -> list[dict[str, Any]]:

@@ -15,10 +15,15 @@ by the other modules:
     dataset.py      the dataset of controlled reaching scenarios (Table 4.A.1)
     softras.py      a differentiable soft silhouette rasteriser (S. Liu et al.)
     model.py        tool encoder psi, mesh decoder psi', task encoder phi, classifier (4.3, 4.B)
+    train.py        the curriculum: reconstruction, then task-driven and task-unaware (4.4.2)
+    checkpoint.py   loading the trained models and a dataset's records (for evaluate and deploy)
+    imagine.py      tool imagination by gradient descent in z_T, and the random walk (Eq. 4.5)
+    evaluate.py     imagination against its baselines on the test tasks (Table 4.1)
+    deploy.py       imagining a tool for one task: mesh, strip, video, rerun, the tool in the simulator
 """
 
 from physint_cli import hookimpl
-from physint_cli.registry import SceneInfo
+from physint_cli.registry import ModelInfo, SceneInfo
 
 
 @hookimpl
@@ -48,3 +53,15 @@ def _build_task_scene(seed: int, type: str = "A", size: int = 128):
 def register_scenes(register):
     register(SceneInfo("reaching", method="toolsynth", build=_build_task_scene,
                        description="top-down reaching tasks of scenario types A-E with a stick or hook"))
+
+
+def _build_toolsynth(**kwargs):
+    from .model import ToolSynth
+
+    return ToolSynth(**kwargs)
+
+
+@hookimpl
+def register_models(register):
+    register(ModelInfo("toolsynth", method="toolsynth", build=_build_toolsynth,
+                       description="psi, psi' (icosphere mesh decoder), phi and the classifier of Fig. 4.3"))

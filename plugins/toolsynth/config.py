@@ -90,6 +90,8 @@ class EvalConfig:
 @dataclass
 class DeployConfig:
     type: str = field_("D", "scenario type of the generated task (with no --target image)")
+    tool: str = field_("", "a start tool as a mesh file (.obj, .stl, .ply; metres, lying flat) instead of a "
+                           "generated tool that cannot reach")
     every: int = field_(0, "draw the tool in the optimisation strip every k steps (0: eight frames)", ge=0)
     video: bool = field_(True, "write a video of the imagination and of the robot's tool reaching the target")
 

@@ -22,7 +22,7 @@ from physint_backends.spec import Body, Camera, Geom, Light, Scene
 
 from . import feasibility
 from .tasks import EXTENT, LINE_WIDTH, LINE_X, LINE_Y, TARGET_RADIUS, Task
-from .tools import THICKNESS, Tool
+from .tools import THICKNESS
 
 TOOL_AT = np.array([0.0, 0.0, 10.0])  # where the tool floats, out of the task camera's view
 TASK_CAMERA_HEIGHT = 2.0
@@ -89,9 +89,10 @@ def tool_body(tool_parts: list, rgba, pos=(0.0, 0.0, 0.0), static: bool = True, 
                 density=600.0)
 
 
-def record_scene(task: Task, tool: Tool, rgba, task_size: int, views: int, tool_size: int) -> Scene:
-    """A record's scene: the task under the ``task`` camera and the tool under the view cameras."""
-    bodies = task_bodies(task) + [tool_body(tool.convex_parts(), rgba, pos=TOOL_AT)]
+def record_scene(task: Task, tool_parts: list, rgba, task_size: int, views: int, tool_size: int) -> Scene:
+    """A record's scene: the task under the ``task`` camera and the tool (its convex parts, e.g.
+    ``Tool.convex_parts()``) under the view cameras."""
+    bodies = task_bodies(task) + [tool_body(tool_parts, rgba, pos=TOOL_AT)]
     return Scene(bodies=bodies, cameras=[task_camera(task_size)] + tool_cameras(views, tool_size, TOOL_AT),
                  lights=[Light(pos=(0.3, -0.4, 3.0), lookat=(0, 0, 0)), Light(pos=(0.3, -0.4, 13.0), lookat=TOOL_AT)],
                  ground=None, background=BACKGROUND)
@@ -137,3 +138,37 @@ def sim_verdict(sim, task: Task, polygon, first: feasibility.Verdict | None = No
 
 
 assert OBSTACLE_HEIGHT > THICKNESS  # the tool lies inside the obstacles' height in the contact check
+
+
+def task_from_image(image: np.ndarray, kind: str = "A") -> Task:
+    """A task read back from a top-down task image (``task_camera``'s): the target at the centre of
+    the green pixels, each blue region an obstacle rectangle, in table metres (one pixel's
+    accuracy: 9 mm at 64 px). None of green: ValueError."""
+    from scipy import ndimage
+
+    rgb = np.asarray(image, float)
+    r, g, b = rgb[..., 0], rgb[..., 1], rgb[..., 2]
+    size = rgb.shape[0]
+    metres = 2 * EXTENT / size
+
+    def x_of(col):
+        return (col + 0.5) * metres - EXTENT
+
+    def y_of(row):
+        return EXTENT - (row + 0.5) * metres
+
+    green = (g > r + 50) & (g > b + 40)
+    if not green.any():
+        raise ValueError("no green target button in the task image")
+    rows, cols = np.nonzero(green)
+    target = (float(x_of(cols.mean())), float(y_of(rows.mean())))
+    blue = (b > r + 60) & (b > g + 30)
+    labels, count = ndimage.label(blue)
+    obstacles = []
+    for sl in ndimage.find_objects(labels):
+        if sl is None or (sl[0].stop - sl[0].start) * (sl[1].stop - sl[1].start) < 2:
+            continue
+        top, bottom, left, right = sl[0].start, sl[0].stop - 1, sl[1].start, sl[1].stop - 1
+        obstacles.append((float(x_of(left) - metres / 2), float(y_of(bottom) - metres / 2),
+                          float(x_of(right) + metres / 2), float(y_of(top) + metres / 2)))
+    return Task(kind, target, obstacles[:4])

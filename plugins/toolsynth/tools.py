@@ -105,6 +105,20 @@ class Tool:
         return out
 
 
+def footprint_parts(polygon, thickness: float = THICKNESS) -> list:
+    """Any outline (an imagined tool's, seen from above) as convex parts a simulator collides: one
+    extruded triangle per triangle of its earcut triangulation, centred on z = 0 as tools are."""
+    import trimesh
+
+    vertices, faces = trimesh.creation.triangulate_polygon(polygon, engine="earcut")
+    parts = []
+    for tri in faces:
+        part = trimesh.creation.extrude_triangulation(vertices[tri], np.array([[0, 1, 2]]), thickness)
+        part.apply_translation((0.0, 0.0, -thickness / 2))
+        parts.append(part)
+    return parts
+
+
 def sample_tool(rng: np.random.Generator, kind: str | None = None) -> Tool:
     """A stick or a hook (even odds) with dimensions uniform in the ranges above."""
     kind = kind or KINDS[int(rng.integers(2))]
