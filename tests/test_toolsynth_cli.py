@@ -36,6 +36,10 @@ def test_pipeline_trains_three_stages_and_reports_table_4_1(tiny_pipeline):
     for name, r in ev["imagination"].items():
         assert set(r["success"]) == {"A", "B", "C", "D", "E", "total"} and r["success"]["total"]["n"] == 20
         assert 0 <= r["success"]["total"]["rate"] <= 1 and r["success"]["total"]["ci95"] >= 0
+    for title in ("task-driven", "task-unaware"):
+        test = ev["test"][title]
+        assert 0 <= test["accuracy"] <= 1 and 0 <= test["iou"] <= 1 and 0 <= test["footprint_iou"] <= 1
+        assert 0 <= test["reconstruction_keeps_label"] <= 1 and set(test["reconstruction_keeps_label_per_type"]) <= set("ABCDE")
     noop = ev["imagination"]["no-op"]
     assert noop["p_end"] == pytest.approx(noop["p_start"])  # the control does not move
     assert ev["imagination"]["task-driven"]["p_end"] > ev["imagination"]["random walk"]["p_end"]
@@ -52,10 +56,12 @@ def test_descent_raises_p_success_where_the_random_walk_does_not(tiny_pipeline):
     driven, _, _ = load_models(out / "train")
     torch.manual_seed(0)
     z_task, z0 = torch.randn(16, driven.kwargs["z_task"]), torch.randn(16, driven.kwargs["z_tool"])
-    descent = imagine(driven, z_task, z0, "descent", step=0.05, max_steps=200, threshold=0.999)
     walk = imagine(driven, z_task, z0, "random", step=0.05, max_steps=200, threshold=0.999)
-    assert (descent.p_end >= descent.p_start - 1e-6).all() and descent.p_end.mean() > walk.p_end.mean()
-    assert (descent.steps <= 200).all() and ((descent.p_end >= 0.999) == descent.reached).all()
+    for optimizer in ("adam", "sgd"):
+        descent = imagine(driven, z_task, z0, "descent", step=0.05, max_steps=200, threshold=0.999,
+                          optimizer=optimizer)
+        assert (descent.p_end >= descent.p_start - 1e-6).all() and descent.p_end.mean() > walk.p_end.mean()
+        assert (descent.steps <= 200).all() and ((descent.p_end >= 0.999) == descent.reached).all()
 
 
 def test_task_image_reads_back_into_its_task():

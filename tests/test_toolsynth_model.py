@@ -112,6 +112,21 @@ def test_iou_loss():
     assert softras.iou_loss(a, b).item() == pytest.approx(1 - 32 / 48, abs=1e-5)
 
 
+def test_free_decoder_crosses_the_centre_inside_the_extent():
+    torch.manual_seed(0)
+    dec = model.MeshDecoder(z_tool=8, subdivisions=1, extent=0.3, hidden=(32, 64), deform="free")
+    with torch.no_grad():
+        for head in (dec.offsets, dec.centroid):
+            head.weight.zero_()
+    assert torch.allclose(dec(torch.randn(2, 8))[0], dec.template(), atol=1e-5)  # zero heads: the template
+    with torch.no_grad():
+        dec.offsets.bias.view(-1, 3)[:, 0] = -8.0  # push every vertex to -x
+    v = dec(torch.randn(2, 8))
+    assert v.abs().max() <= 0.3 + 1e-6 and (v[..., 0] < 0).all()  # all across the centre, as octants forbid
+    with pytest.raises(ValueError, match="deform"):
+        model.MeshDecoder(z_tool=8, deform="melt")
+
+
 def test_gradients_through_decoder_and_rasteriser_fit_a_silhouette():
     torch.manual_seed(0)
     cams = orbit(2)

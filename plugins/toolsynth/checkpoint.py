@@ -36,9 +36,9 @@ def load_split(root: Path, split: str, fields: list[str] = FIELDS) -> dict[str, 
     return ShardedDataset(root, split, fields, method="toolsynth", in_memory=True).arrays
 
 
-def view_cameras(views: int, size: int) -> softras.CameraTensors:
+def view_cameras(views: int, size: int, elevation: float = S.ELEVATION) -> softras.CameraTensors:
     """The dataset's ring of tool cameras round the origin, where the decoder places its meshes."""
-    return softras.camera_tensors(S.tool_cameras(views, size))
+    return softras.camera_tensors(S.tool_cameras(views, size, elevation=elevation))
 
 
 def load_models(run_dir, device: str = "cpu"):

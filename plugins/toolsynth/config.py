@@ -12,10 +12,16 @@ Deviations from the thesis (docs/toolsynth.md says why):
   is measured on, so that the checkpoint chosen on the validation split never sees them;
 * Eq. 4.5 adds the gradient of L_task to z_T, which ascends the loss; imagination descends it
   (towards p(success) = 1), as the text around the equation describes;
+* imagination steps with Adam at learning rate eta by default (``eval.optimizer``): the thesis says
+  only "via backpropagation using a learning rate of 0.01"; ``sgd`` is Eq. 4.5 to the letter;
 * the reconstruction loss is the silhouette IoU in the other view (L_s) plus mu times the
   Laplacian and flatten losses of Kato et al. / S. Liu et al. (L_g), with a soft rasteriser
   written in torch (SoftRas is not installable here);
-* a pose that keeps less than 2 mm from an obstacle counts as touching it (``feasibility.CLEARANCE``).
+* a pose that keeps less than 2 mm from an obstacle counts as touching it (``feasibility.CLEARANCE``);
+* the ring's cameras look down from 55 degrees (``data.elevation``; the thesis does not say): from
+  30 degrees a 2 cm handle is one pixel wide at 64 px;
+* the decoder's vertices may cross the template's centre (``train.deform=free``; SoftRas keeps each
+  in its octant round a centroid, which leaves hooks a second leg, ``model.MeshDecoder``).
 """
 
 from __future__ import annotations
@@ -41,6 +47,8 @@ class DataConfig:
     task_size: int = field_(64, "task image side in pixels (thesis: 128)", ge=32)
     tool_size: int = field_(64, "tool view side in pixels (thesis: 128)", ge=32)
     views: int = field_(12, "cameras on the ring round each tool; a record keeps two of them (thesis: 12)", ge=2)
+    elevation: float = field_(55.0, "degrees above the horizontal of the ring's cameras (not in the thesis); the "
+                                    "higher, the more of a tool's width its silhouettes show", ge=5.0, le=85.0)
     per_shard: int = field_(100, "tasks per shard (work unit)", ge=1)
     sim_check: float = field_(0.05, "share of records whose label the simulator confirms by contacts (the "
                                     "agreement rate goes to the manifest)", ge=0.0, le=1.0)
@@ -58,14 +66,21 @@ class TrainConfig:
     joint_epochs: int = field_(12, "stage 2: epochs of reconstruction and task prediction together; the "
                                    "task-unaware model trains its task encoder and classifier as long", ge=1)
     batch_size: int = field_(32, "records per batch (thesis: 16)", ge=1)
-    lr: float = field_(3e-4, "Adam learning rate (thesis: 1e-4)", gt=0.0)
+    lr: float = field_(3e-4, "Adam learning rate of stage 1, reconstruction (thesis: 1e-4)", gt=0.0)
+    joint_lr: float = field_(1e-4, "Adam learning rate of stage 2 (task-driven) and of the task-unaware "
+                                   "classifier (thesis: 1e-4)", gt=0.0)
     width: float = field_(0.5, "tool encoder filter multiplier (1.0: SoftRas's 64-128-256)", gt=0.0)
     task_width: float = field_(0.5, "task encoder filter multiplier (1.0: Appendix 4.B's 16-32-64-64-128)", gt=0.0)
     z_tool: int = field_(512, "size of the tool latent z_T", ge=2)
     z_task: int = field_(256, "size of the task latent z_G", ge=2)
     subdivisions: int = field_(2, "icosphere subdivisions of the template mesh (2: 162 vertices, 320 faces; "
                                   "SoftRas: 642 vertices)", ge=1, le=4)
-    sigma: float = field_(1.0, "softness of the silhouette rasteriser's edges (pixels squared)", gt=0.0)
+    deform: Literal["octant", "free"] = field_("free", "how the decoder moves template vertices: octant "
+                                                         "(SoftRas: each stays in its octant round a centroid) "
+                                                         "or free (any coordinate may cross the centre)")
+    sigma: float = field_(0.1, "softness of the silhouette rasteriser's edges (pixels squared; SoftRas: 0.1 "
+                               "at 64 px). Softer edges bleed over thin handles, and the decoder learns to "
+                               "shrink its tools to make up for it", gt=0.0)
     laplacian: float = field_(5e-3, "weight of the Laplacian loss in mu * L_g (Eq. 4.2)", ge=0.0)
     flatten: float = field_(5e-4, "weight of the flatten loss in mu * L_g (Eq. 4.2)", ge=0.0)
     task_weight: float = field_(1.0, "weight of L_task in stage 2 (Eq. 4.4: 1)", ge=0.0)
@@ -79,6 +94,9 @@ class EvalConfig:
     instances: int = field_(100, "infeasible test instances per type, each warm-starting every imagination "
                                  "process (thesis: 250)", ge=1)
     step: float = field_(0.01, "imagination learning rate eta (Eq. 4.5) and the random walk's step", gt=0.0)
+    optimizer: Literal["adam", "sgd"] = field_("adam", "how imagination steps on the gradient: adam (each coordinate "
+                                                       "moves about eta, as the random walk's) or sgd (Eq. 4.5: "
+                                                       "eta times the gradient)")
     max_steps: int = field_(2000, "step cap S (thesis: 10,000)", ge=1)
     threshold: float = field_(0.997, "stop once p(success) reaches gamma", gt=0.0, lt=1.0)
     sim_check: bool = field_(True, "also place each imagined tool in the simulator and check it by contacts")
@@ -111,7 +129,7 @@ class ToolsynthConfig:
 PRESETS = {
     "tiny": {"data.train": 64, "data.val": 20, "data.test": 40, "data.task_size": 32, "data.tool_size": 32,
              "data.views": 4, "data.per_shard": 32, "data.sim_check": 0.2, "train.recon_epochs": 2,
-             "train.joint_epochs": 2, "train.batch_size": 8, "train.width": 0.25, "train.task_width": 0.25,
+             "train.joint_epochs": 2, "train.joint_lr": 3e-4, "train.batch_size": 8, "train.width": 0.25, "train.task_width": 0.25,
              "train.z_tool": 64, "train.z_task": 32, "train.subdivisions": 1, "eval.instances": 4,
              "eval.max_steps": 100},
     "small": {},

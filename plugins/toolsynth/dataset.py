@@ -68,7 +68,8 @@ def generate(ctx: Context, unit: Unit) -> tuple[dict[str, np.ndarray], dict[str,
             task, tool, verdict, tried = draw_record(kind, feasible, rng, cfg.max_attempts)
             rgba = (*rng.uniform(0.15, 0.85, 3), 1.0)
             views = rng.choice(cfg.views, size=2, replace=False)
-            scene = S.record_scene(task, tool.convex_parts(), rgba, cfg.task_size, cfg.views, cfg.tool_size)
+            scene = S.record_scene(task, tool.convex_parts(), rgba, cfg.task_size, cfg.views, cfg.tool_size,
+                                   cfg.elevation)
             if sim is None:
                 sim = ctx.make_sim(scene)
             else:

@@ -150,7 +150,7 @@ def deploy(ctx: Context) -> dict[str, Any]:
     rng = np.random.default_rng(unit_seed(ctx.seed, "deploy-tool"))
     described, parts = start_tool(cfg.tool, task, rng)
     rgba = (*rng.uniform(0.15, 0.85, 3), 1.0)
-    scene = S.record_scene(task, parts, rgba, task_size, views, tool_size)
+    scene = S.record_scene(task, parts, rgba, task_size, views, tool_size, float(meta.get("elevation", S.ELEVATION)))
     sim = ctx.make_sim(scene)
     try:
         record = S.render_record(sim, [0, views // 2], tool_index=len(scene.bodies) - 1)
@@ -165,7 +165,7 @@ def deploy(ctx: Context) -> dict[str, Any]:
         z0 = driven.encode_tool(tool_input(record["tool_rgb"][:1], record["tool_sil"][:1]))
     keep = cfg.every or max(1, ecfg.max_steps // 64)
     run = imagine(driven, z_task, z0, "descent", ecfg.step, ecfg.max_steps, ecfg.threshold, seed=ctx.seed,
-                  keep_every=keep)
+                  keep_every=keep, optimizer=ecfg.optimizer)
     zs = torch.cat([z for _, z, _ in run.trace])
     shapes = footprints(driven, zs)
     verdicts = [feasibility.check(s, task) for s in shapes]

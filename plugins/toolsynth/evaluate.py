@@ -32,9 +32,10 @@ from physint_cli.stats import ci95
 from . import scenes as S
 from .checkpoint import FIELDS, load_models, load_split, view_cameras
 from .imagine import imagine, judge
+from .softras import hard_iou
 from .model import task_input, tool_input
 from .tasks import TYPES, Task, parse_types
-from .tools import footprint_parts
+from .tools import Tool, footprint_parts
 
 # Table 4.1: success rates (%) of task-driven / task-unaware imagination and the random walk
 THESIS = {"task-driven": {"A": 96.4, "B": 78.8, "C": 76.4, "D": 81.2, "E": 86.4, "total": 83.8},
@@ -70,22 +71,43 @@ def latents(model, records: dict[str, np.ndarray], index, batch: int = 256) -> t
 
 
 def test_scores(model, records: dict[str, np.ndarray], cams, sigma: float, batch: int = 128) -> dict[str, Any]:
-    """The classifier's accuracy (all and per type) and the mean reconstruction IoU in the second
-    stored view of the whole test split."""
-    from .train import hard_iou
-
-    pred, iou = [], []
+    """On the whole test split: the classifier's accuracy (all and per type), the mean
+    reconstruction IoU in the second stored view and from above (the decoded tool's outline
+    against the true tool's, what the geometric check sees), and how often the geometric check gives the tool
+    decoded from the first view the record's own label (per type): the share of tools whose
+    reconstruction keeps what they can reach, which bounds what imagination can decode."""
+    pred, iou, z_all = [], [], []
     with torch.no_grad():
         for s in range(0, len(records["label"]), batch):
             sl = slice(s, s + batch)
             z = model.encode_tool(tool_input(records["tool_rgb"][sl, 0], records["tool_sil"][sl, 0]))
+            z_all.append(z)
             pred.append(model.classify(model.encode_task(task_input(records["task"][sl])), z).argmax(1).numpy())
             sil = model.silhouettes(model.decode(z), cams, torch.as_tensor(records["views"][sl, 1]).long(), sigma)
             iou.append(hard_iou(sil, torch.as_tensor(records["tool_sil"][sl, 1] > 0).float()).numpy())
     right = np.concatenate(pred) == records["label"]
-    per_type = {t: float(right[records["type"] == TYPES.index(t)].mean())
+    verdicts, shapes = judge(model, torch.cat(z_all), tasks_of(records, range(len(right))))
+    kept = np.array([v.feasible for v in verdicts]) == records["label"].astype(bool)
+    footprint_iou = np.array([footprint_overlap(shape, Tool.from_array(a).footprint())
+                              for shape, a in zip(shapes, records["tool"])])
+
+    def per_type(hit: np.ndarray) -> dict[str, float]:
+        return {t: float(hit[records["type"] == TYPES.index(t)].mean())
                 for t in TYPES if (records["type"] == TYPES.index(t)).any()}
-    return {"accuracy": float(right.mean()), "accuracy_per_type": per_type, "iou": float(np.concatenate(iou).mean())}
+
+    feasible = records["label"] == 1
+    return {"accuracy": float(right.mean()), "accuracy_per_type": per_type(right),
+            "iou": float(np.concatenate(iou).mean()), "footprint_iou": float(footprint_iou.mean()),
+            "reconstruction_keeps_label": float(kept.mean()), "reconstruction_keeps_label_per_type": per_type(kept),
+            "reconstruction_keeps_feasible": float(kept[feasible].mean()) if feasible.any() else float("nan")}
+
+
+def footprint_overlap(decoded, true) -> float:
+    """IoU from above of a decoded tool's outline (None: no area) and the true tool's, both in the tool frame."""
+    if decoded is None:
+        return 0.0
+    union = decoded.union(true).area
+    return float(decoded.intersection(true).area / union) if union > 0 else 0.0
 
 
 def confirm_in_sim(ctx: Context, tasks: list[Task], verdicts, shapes) -> tuple[int, int]:
@@ -155,7 +177,8 @@ def evaluate(ctx: Context) -> dict[str, Any]:
     for name, which, method in RUNS:
         model = models[which]
         z_task, z_start = latents(model, records, index)
-        run = imagine(model, z_task, z_start, method, cfg.step, cfg.max_steps, cfg.threshold, seed=ctx.seed)
+        run = imagine(model, z_task, z_start, method, cfg.step, cfg.max_steps, cfg.threshold, seed=ctx.seed,
+                      optimizer=cfg.optimizer)
         verdicts, shapes = judge(model, run.z, tasks)
         success = np.array([v.feasible for v in verdicts])
         r = {"success": rates(success, types, letters), "reached_threshold": float(run.reached.mean()),
@@ -171,7 +194,7 @@ def evaluate(ctx: Context) -> dict[str, Any]:
         rows += [{"method": name, "record": int(i), "type": TYPES[int(t)], "steps": int(s), "p_start": float(p0),
                   "p_end": float(p1), "feasible": bool(v.feasible)}
                  for i, t, s, p0, p1, v in zip(index, types, run.steps, run.p_start, run.p_end, verdicts)]
-    cams = view_cameras(int(meta["views"]), int(meta["kwargs"]["image_size"]))
+    cams = view_cameras(int(meta["views"]), int(meta["kwargs"]["image_size"]), float(meta.get("elevation", S.ELEVATION)))
     scores = {title: test_scores(models[which], records, cams, float(meta.get("sigma", 1.0)))
               for title, which in (("task-driven", "driven"), ("task-unaware", "unaware"))}
     out = ctx.output()

@@ -6,7 +6,14 @@ loss towards "success" in z_T alone, the networks fixed:
     z_T <- z_T - eta * d L_task(ff([z_G, z_T]), rho = 1) / d z_T
 
 (Eq. 4.5 prints a plus: ascending that loss would move away from success). Each instance stops at
-its own first step where p(success) >= gamma (``threshold``), or at the step cap. The random walk
+its own first step where p(success) >= gamma (``threshold``), or at the step cap.
+
+The thesis "modifies the latent vector via backpropagation using a learning rate of 0.01". With
+``optimizer="sgd"`` that is Eq. 4.5 literally, a step of eta times the gradient, whose length
+depends on how steep the classifier happens to be in z_T; with ``optimizer="adam"`` (the default)
+Adam at learning rate eta moves each coordinate by about eta per step, the same scale as the
+random walk's steps, so the two searches cover comparable distances. Adam's moments are
+elementwise, so one optimiser over the batch is one per instance. The random walk
 (Section 4.4.3's baseline) steps z_T <- z_T + eta * eps, eps ~ N(0, I), with the same stop rule;
 the no-op control decodes the start latent unchanged. :func:`judge` decodes final latents to meshes
 and asks the geometric check (``feasibility.check`` on the mesh seen from above) whether they reach.
@@ -24,6 +31,7 @@ from .model import p_success, task_loss
 from .tasks import Task
 
 METHODS = ("descent", "random", "none")
+OPTIMIZERS = ("adam", "sgd")
 
 
 @dataclass
@@ -41,11 +49,15 @@ class Imagination:
 
 
 def imagine(model, z_task: torch.Tensor, z_start: torch.Tensor, method: str = "descent", step: float = 0.01,
-            max_steps: int = 2000, threshold: float = 0.997, seed: int = 0, keep_every: int = 0) -> Imagination:
-    """Run ``method`` (``descent``: Eq. 4.5; ``random``: the random walk; ``none``: no-op) from
-    ``z_start`` (B, Z) for tasks ``z_task`` (B, Z_G) with the classifier of ``model``."""
+            max_steps: int = 2000, threshold: float = 0.997, seed: int = 0, keep_every: int = 0,
+            optimizer: str = "adam") -> Imagination:
+    """Run ``method`` (``descent``: Eq. 4.5 with ``optimizer``; ``random``: the random walk;
+    ``none``: no-op) from ``z_start`` (B, Z) for tasks ``z_task`` (B, Z_G) with the classifier of
+    ``model``."""
     if method not in METHODS:
         raise ValueError(f"imagination method must be one of {', '.join(METHODS)}, got {method!r}")
+    if optimizer not in OPTIMIZERS:
+        raise ValueError(f"imagination optimizer must be one of {', '.join(OPTIMIZERS)}, got {optimizer!r}")
     gen = torch.Generator(device=z_start.device).manual_seed(seed)
     z_task = z_task.detach()
     z = z_start.detach().clone()
@@ -56,15 +68,22 @@ def imagine(model, z_task: torch.Tensor, z_start: torch.Tensor, method: str = "d
     active = (p < threshold) if method != "none" else torch.zeros(len(z), dtype=torch.bool, device=z.device)
     steps = torch.zeros(len(z), dtype=torch.long, device=z.device)
     trace = [(0, z.clone(), p.cpu().numpy())] if keep_every else []
+    zk = z.clone().requires_grad_(True)
+    adam = torch.optim.Adam([zk], lr=step) if optimizer == "adam" else None
     for k in range(1, max_steps + 1):
         if not bool(active.any()):
             break
         if method == "descent":
-            zk = z.clone().requires_grad_(True)
+            zk.data.copy_(z)
             # sum of per-instance losses: each instance's gradient is its own (Eq. 4.5 per task)
             loss = task_loss(model.classify(z_task, zk), success) * len(z)
             (grad,) = torch.autograd.grad(loss, zk)
-            move = -step * grad
+            if adam is None:
+                move = -step * grad  # Eq. 4.5, descending
+            else:  # Adam's step on the same gradient; finished instances keep their moments frozen
+                zk.grad = grad * active[:, None]
+                adam.step()
+                move = zk.detach() - z
         else:
             move = step * torch.randn(z.shape, generator=gen, device=z.device)
         z = torch.where(active[:, None], z + move, z)

@@ -20,6 +20,10 @@
   learning starts from a tool-like plate rather than from a ball most of whose surface has to
   collapse onto a plane. The heads start at a tenth of PyTorch's initial weights, so the first
   meshes are close to the template.
+  ``deform="free"`` drops the octants: each coordinate becomes tanh(atanh(x) + offset + c), free
+  to cross the centre. An L-shaped hook leaves a quadrant round its bounding box's centre empty
+  (below the hook, beside the handle); octant-bound vertices cannot leave it and collapse into a
+  thin sheet there, a second leg that the silhouettes hardly see but the top-down outline does.
 * :func:`laplacian_loss` and :func:`flatten_loss` make up the geometry loss L_g of Eq. 4.2 (Kato
   et al., S. Liu et al.); :func:`recon_loss` is L_recon = L_s + mu L_g (Eq. 4.2) with L_s the
   silhouette IoU loss of ``softras.iou_loss``.
@@ -49,6 +53,7 @@ TOOL_MAP = 8  # side of the tool encoder's last map
 TASK_FILTERS = (16, 32, 64, 64, 128)  # Appendix 4.B
 FLAT_TEMPLATE = (0.3, 0.75, 0.1)  # template scale per axis: a flat plate along y (SoftRas: 0.5, 0.5, 0.5)
 NORMS = ("batch", "group", "none")
+DEFORMS = ("octant", "free")
 
 
 def _channels(filters: int, width: float) -> int:
@@ -101,9 +106,13 @@ class MeshDecoder(nn.Module):
 
     def __init__(self, z_tool: int = 512, subdivisions: int = 2, extent: float = 0.3,
                  template_scale: tuple[float, float, float] = FLAT_TEMPLATE, hidden: tuple[int, int] = (1024, 2048),
-                 centroid_scale: float = 0.1, offset_scale: float = 1.0):
+                 centroid_scale: float = 0.1, offset_scale: float = 1.0, deform: str = "octant"):
         super().__init__()
         import trimesh
+
+        if deform not in DEFORMS:
+            raise ValueError(f"deform {deform!r} is not known; valid: {', '.join(DEFORMS)}")
+        self.deform = deform
 
         if not all(0 < s < 1 for s in template_scale):
             raise ValueError(f"template_scale must lie in (0, 1) on each axis, got {template_scale}")
@@ -112,6 +121,7 @@ class MeshDecoder(nn.Module):
         self.register_buffer("faces", torch.tensor(sphere.faces, dtype=torch.long))
         self.register_buffer("sign", torch.sign(base))
         self.register_buffer("base_logit", torch.logit(base.abs().clamp(1e-4, 1 - 1e-4)))
+        self.register_buffer("base_atanh", torch.atanh(base.clamp(-1 + 1e-4, 1 - 1e-4)), persistent=False)
         self.vertices_n = base.shape[0]
         self.extent, self.centroid_scale, self.offset_scale = extent, centroid_scale, offset_scale
         self.fc = nn.Sequential(nn.Linear(z_tool, hidden[0]), nn.ReLU(inplace=True),
@@ -125,8 +135,10 @@ class MeshDecoder(nn.Module):
 
     def forward(self, z: torch.Tensor) -> torch.Tensor:
         h = self.fc(z)
-        c = torch.tanh(self.centroid(h) * self.centroid_scale)[:, None, :]  # (B, 1, 3) in (-1, 1)
         offsets = (self.offsets(h) * self.offset_scale).view(-1, self.vertices_n, 3)
+        if self.deform == "free":  # every coordinate free in (-1, 1), shifted by c before the tanh
+            return torch.tanh(self.base_atanh + offsets + self.centroid(h)[:, None, :]) * self.extent
+        c = torch.tanh(self.centroid(h) * self.centroid_scale)[:, None, :]  # (B, 1, 3) in (-1, 1)
         u = self.sign * torch.sigmoid(self.base_logit + offsets)  # in (-1, 1), the template's octant
         v = c + F.relu(u) * (1 - c) - F.relu(-u) * (1 + c)  # u > 0 over [c, 1], u < 0 over [-1, c]
         return v * self.extent
@@ -273,15 +285,17 @@ class ToolSynth(nn.Module):
                  width: float = 1.0, task_width: float = 1.0, subdivisions: int = 2, extent: float = 0.3,
                  norm: str = "batch", template_scale: tuple[float, float, float] = FLAT_TEMPLATE,
                  hidden: int = 1024, decoder_hidden: tuple[int, int] = (1024, 2048),
-                 classifier_hidden: tuple[int, int] = (1024, 512)):
+                 classifier_hidden: tuple[int, int] = (1024, 512), deform: str = "octant"):
         super().__init__()
         self.kwargs = dict(image_size=image_size, task_size=task_size, z_tool=z_tool, z_task=z_task, width=width,
                            task_width=task_width, subdivisions=subdivisions, extent=extent, norm=norm,
                            template_scale=tuple(template_scale), hidden=hidden,
-                           decoder_hidden=tuple(decoder_hidden), classifier_hidden=tuple(classifier_hidden))
+                           decoder_hidden=tuple(decoder_hidden), classifier_hidden=tuple(classifier_hidden),
+                           deform=deform)
         self.extent = extent
         self.encoder = ToolEncoder(image_size, z_tool, width, norm, hidden)  # psi
-        self.decoder = MeshDecoder(z_tool, subdivisions, extent, tuple(template_scale), tuple(decoder_hidden))  # psi'
+        self.decoder = MeshDecoder(z_tool, subdivisions, extent, tuple(template_scale), tuple(decoder_hidden),
+                                   deform=deform)  # psi'
         self.task_encoder = TaskEncoder(task_size, z_task, task_width)  # phi
         self.classifier = Classifier(z_task, z_tool, tuple(classifier_hidden))  # ff
 

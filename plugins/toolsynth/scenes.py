@@ -2,8 +2,8 @@
 
 One scene per dataset record holds both things a record shows: the task on a table, seen from
 straight above by the ``task`` camera, and, 10 m above it in empty space, the tool lying flat with
-``views`` cameras around it on a ring (``view0`` ... at equal azimuths, ``ELEVATION`` above the
-horizontal; the thesis renders 12). The tool's silhouette in a view is where the backend's
+``views`` cameras around it on a ring (``view0`` ... at equal azimuths, ``elevation`` degrees above
+the horizontal, ``data.elevation``; the thesis renders 12 and does not say from how high). The tool's silhouette in a view is where the backend's
 segmentation shows the tool body. The cameras of one view are the same on every backend and for
 the differentiable renderer that trains the mesh decoder (:func:`tool_cameras`).
 
@@ -27,7 +27,7 @@ from .tools import THICKNESS
 TOOL_AT = np.array([0.0, 0.0, 10.0])  # where the tool floats, out of the task camera's view
 TASK_CAMERA_HEIGHT = 2.0
 VIEW_RADIUS = 0.9  # m from the tool's centre
-ELEVATION = 30.0  # degrees above the horizontal
+ELEVATION = 30.0  # degrees above the horizontal, of datasets that did not record theirs
 VIEW_FOVY = 40.0
 OBSTACLE_HEIGHT = 0.04
 RGBA = {"table": (0.93, 0.93, 0.9, 1.0), "line": (0.85, 0.1, 0.1, 1.0), "target": (0.1, 0.75, 0.2, 1.0),
@@ -42,10 +42,11 @@ def task_camera(size: int) -> Camera:
                   fovy=fovy, width=size, height=size)
 
 
-def tool_cameras(views: int, size: int, center=(0.0, 0.0, 0.0)) -> list[Camera]:
-    """``views`` cameras on a ring round a tool at ``center``, at azimuths 0, 360/views, ... deg."""
+def tool_cameras(views: int, size: int, center=(0.0, 0.0, 0.0), elevation: float = ELEVATION) -> list[Camera]:
+    """``views`` cameras on a ring round a tool at ``center``, at azimuths 0, 360/views, ... deg,
+    ``elevation`` degrees above the horizontal."""
     out = []
-    el = math.radians(ELEVATION)
+    el = math.radians(elevation)
     for k in range(views):
         az = 2 * math.pi * k / views
         offset = VIEW_RADIUS * np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
@@ -89,11 +90,12 @@ def tool_body(tool_parts: list, rgba, pos=(0.0, 0.0, 0.0), static: bool = True, 
                 density=600.0)
 
 
-def record_scene(task: Task, tool_parts: list, rgba, task_size: int, views: int, tool_size: int) -> Scene:
+def record_scene(task: Task, tool_parts: list, rgba, task_size: int, views: int, tool_size: int,
+                 elevation: float = ELEVATION) -> Scene:
     """A record's scene: the task under the ``task`` camera and the tool (its convex parts, e.g.
     ``Tool.convex_parts()``) under the view cameras."""
     bodies = task_bodies(task) + [tool_body(tool_parts, rgba, pos=TOOL_AT)]
-    return Scene(bodies=bodies, cameras=[task_camera(task_size)] + tool_cameras(views, tool_size, TOOL_AT),
+    return Scene(bodies=bodies, cameras=[task_camera(task_size)] + tool_cameras(views, tool_size, TOOL_AT, elevation),
                  lights=[Light(pos=(0.3, -0.4, 3.0), lookat=(0, 0, 0)), Light(pos=(0.3, -0.4, 13.0), lookat=TOOL_AT)],
                  ground=None, background=BACKGROUND)
 

@@ -267,3 +267,10 @@ def _benchmark() -> None:  # python -m physint_plugins.toolsynth.softras
 
 if __name__ == "__main__":
     _benchmark()
+
+
+def hard_iou(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """Per image, the IoU of the soft silhouette cut at 0.5 with the rendered silhouette."""
+    p = pred > 0.5
+    t = target > 0.5
+    return (p & t).flatten(1).sum(1).float() / (p | t).flatten(1).sum(1).clamp(min=1).float()

@@ -30,7 +30,9 @@ from torch import nn
 from physint_cli.errors import BadInput
 from physint_cli.method import Context
 
+from . import scenes as S
 from .checkpoint import MODEL, data_config, load_split, view_cameras
+from .softras import hard_iou
 from .tasks import TYPES, parse_types
 
 FIELDS = ["task", "tool_rgb", "tool_sil", "views", "label", "type"]
@@ -42,7 +44,8 @@ def build_model(name: str, data_cfg: dict[str, Any], cfg):
 
     kwargs = {"image_size": int(data_cfg["tool_size"]), "task_size": int(data_cfg["task_size"]),
               "z_tool": int(cfg.z_tool), "z_task": int(cfg.z_task), "width": float(cfg.width),
-              "task_width": float(cfg.task_width), "subdivisions": int(cfg.subdivisions)}
+              "task_width": float(cfg.task_width), "subdivisions": int(cfg.subdivisions),
+              "deform": str(cfg.deform)}
     return registered_model("toolsynth", name).build(**kwargs), kwargs
 
 
@@ -90,13 +93,6 @@ def fixed_views(batch: dict[str, Any]) -> dict[str, Any]:
     """Validation batches: always the first stored view encoded, the second rendered."""
 
     return views_of(batch, torch.zeros(len(batch["label"]), dtype=torch.long))
-
-
-def hard_iou(pred, target) -> Any:
-    """Per image, the IoU of the soft silhouette cut at 0.5 with the rendered silhouette."""
-    p = pred > 0.5
-    t = target > 0.5
-    return (p & t).flatten(1).sum(1).float() / (p | t).flatten(1).sum(1).clamp(min=1).float()
 
 
 class Scores:
@@ -181,10 +177,11 @@ def train(ctx: Context) -> dict[str, Any]:
                        f"make one with `physint dataset toolsynth`")
     torch.manual_seed(ctx.seed)  # stage 1's networks, and the phi / ff both stage-2 variants start from
     model, kwargs = build_model(name, data_cfg, cfg)
-    cams = view_cameras(int(data_cfg["views"]), int(data_cfg["tool_size"]))
+    elevation = float(data_cfg.get("elevation", S.ELEVATION))
+    cams = view_cameras(int(data_cfg["views"]), int(data_cfg["tool_size"]), elevation)
     run = ctx.output()
     meta = {"method": "toolsynth", "model": name, "kwargs": kwargs, "backend": manifest["backend"],
-            "dataset": str(ctx.data), "views": int(data_cfg["views"]), "train_types": "".join(train_types),
+            "dataset": str(ctx.data), "views": int(data_cfg["views"]), "elevation": elevation, "train_types": "".join(train_types),
             "sigma": float(cfg.sigma)}
     ctx.log(f"training {name} on {len(labels)} records of types {''.join(train_types)} "
             f"({labels.mean():.0%} feasible), validating on {len(val_arrays['label'])}")
@@ -205,7 +202,7 @@ def train(ctx: Context) -> dict[str, Any]:
     def head_loss(net, batch):  # L_task on the frozen encoder's latents
         return task_loss(net.classify(net.encode_task(batch["task"]), batch["z_tool"]), batch["label"])
 
-    def stage(title: str, net, train_set, loss_fn, key: str, epochs: int):
+    def stage(title: str, net, train_set, loss_fn, key: str, epochs: int, lr: float):
         directory = run.path / "stages" / title
         (directory / "checkpoints").mkdir(parents=True, exist_ok=True)
         stage_run = Run(directory)
@@ -213,7 +210,7 @@ def train(ctx: Context) -> dict[str, Any]:
         ctx.log(f"stage {title}: {epochs} epochs")
         val_set = Records(val_arrays, val_latents if key == "head" else None)
         result = fit(net, train_set, val_set, run=stage_run, epochs=epochs,
-                     batch_size=cfg.batch_size, lr=cfg.lr, loss_fn=loss_fn, metric_fn=scores, device=ctx.device,
+                     batch_size=cfg.batch_size, lr=lr, loss_fn=loss_fn, metric_fn=scores, device=ctx.device,
                      seed=ctx.seed, resume=ctx.resume, log=ctx.log, higher_is_better=True, precision=cfg.precision,
                      batch_transform=random_views, progress=not ctx.quiet, meta=meta)
         best = stage_run.load_trained(ctx.device)
@@ -222,15 +219,15 @@ def train(ctx: Context) -> dict[str, Any]:
         return result
 
     results = {"recon": stage("1-reconstruction", model, Records(train_arrays), stage1_loss, "iou",
-                              cfg.recon_epochs)}
+                              cfg.recon_epochs, cfg.lr)}
     unaware = copy.deepcopy(model)  # stage 1's psi / psi', and phi / ff as initialised
     # task-unaware latents: psi frozen at stage 1
     train_latents, val_latents = encode_views(unaware, train_arrays), encode_views(unaware, val_arrays)
     results["task-driven"] = stage("2-task-driven", model, Records(train_arrays), joint_loss, "accuracy",
-                                   cfg.joint_epochs)
+                                   cfg.joint_epochs, cfg.joint_lr)
     head = TaskHead(unaware)
     results["task-unaware"] = stage("3-task-unaware", head, Records(train_arrays, train_latents), head_loss, "head",
-                                    cfg.joint_epochs)
+                                    cfg.joint_epochs, cfg.joint_lr)
     unaware.task_encoder.load_state_dict(head.task_encoder.state_dict())
     unaware.classifier.load_state_dict(head.classifier.state_dict())
     iou = Scores(cams, train_types, "iou", cfg.sigma)
