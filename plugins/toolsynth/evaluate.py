@@ -32,8 +32,8 @@ from physint_cli.stats import ci95
 from . import scenes as S
 from .checkpoint import FIELDS, load_models, load_split, view_cameras
 from .imagine import imagine, judge
-from .softras import hard_iou
 from .model import task_input, tool_input
+from .softras import hard_iou
 from .tasks import TYPES, Task, parse_types
 from .tools import Tool, footprint_parts
 
@@ -174,9 +174,10 @@ def evaluate(ctx: Context) -> dict[str, Any]:
             f"step {cfg.step}, at most {cfg.max_steps} steps, threshold {cfg.threshold}")
     results: dict[str, Any] = {}
     rows = []
+    start = {which: latents(model, records, index) for which, model in models.items()}  # each model's, once
     for name, which, method in RUNS:
         model = models[which]
-        z_task, z_start = latents(model, records, index)
+        z_task, z_start = start[which]
         run = imagine(model, z_task, z_start, method, cfg.step, cfg.max_steps, cfg.threshold, seed=ctx.seed,
                       optimizer=cfg.optimizer)
         verdicts, shapes = judge(model, run.z, tasks)

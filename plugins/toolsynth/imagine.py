@@ -80,7 +80,7 @@ def imagine(model, z_task: torch.Tensor, z_start: torch.Tensor, method: str = "d
             (grad,) = torch.autograd.grad(loss, zk)
             if adam is None:
                 move = -step * grad  # Eq. 4.5, descending
-            else:  # Adam's step on the same gradient; finished instances keep their moments frozen
+            else:  # Adam's step on the same gradient; finished instances get none and stay put (below)
                 zk.grad = grad * active[:, None]
                 adam.step()
                 move = zk.detach() - z
