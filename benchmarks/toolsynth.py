@@ -82,6 +82,9 @@ def main(argv: list[str] | None = None) -> int:
                          rate(r["success"].get(letter)), "~0 % (control)" if name == "no-op" else "-"))
         rows.append((f"  {name}: reached p >= {ev['threshold']}, mean steps", "-",
                      f"{pct(r['reached_threshold'])}, {r['mean_steps']:.0f}", f"cap {ev['max_steps']}"))
+        if "latent_moved" in r:
+            rows.append((f"  {name}: distance moved in z_T / distance between two tools", "-",
+                         f"{r['latent_moved']:.2f}", "-"))
     totals = {n: imagination[n]["success"]["total"] for n in ORDER if n in imagination}
     if len(totals) == len(ORDER):
         order = all(apart(totals[a], totals[b]) for a, b in zip(ORDER, ORDER[1:]))

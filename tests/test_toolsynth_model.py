@@ -243,3 +243,16 @@ def test_geometry_losses():
     assert set(parts) >= {"silhouette", "laplacian", "flatten", "total"}
     expected = parts["silhouette"] + 5e-3 * parts["laplacian"] + 5e-4 * parts["flatten"]
     assert torch.allclose(parts["total"], expected)
+
+
+def test_jitter_scales_with_the_batch_spread_and_is_off_at_zero():
+    torch.manual_seed(0)
+    z = torch.randn(4096, 8) * torch.tensor([0.1, 1.0, 10.0, 1.0, 1.0, 1.0, 1.0, 1.0]) + 3.0
+    assert torch.equal(model.jitter(z, 0.0), z)
+    noise = model.jitter(z, 0.5) - z
+    ratio = noise.std(dim=0) / (0.5 * z.std(dim=0))  # noise per coordinate follows that coordinate's spread
+    assert torch.allclose(ratio, torch.ones(8), atol=0.06)
+    assert abs(float(noise.mean())) < 0.05
+    z.requires_grad_(True)
+    model.jitter(z, 0.5).sum().backward()  # the spread is detached: the gradient to z is the identity's
+    assert torch.allclose(z.grad, torch.ones_like(z))

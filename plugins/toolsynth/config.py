@@ -83,6 +83,8 @@ class TrainConfig:
                                "shrink its tools to make up for it", gt=0.0)
     laplacian: float = field_(5e-3, "weight of the Laplacian loss in mu * L_g (Eq. 4.2)", ge=0.0)
     flatten: float = field_(5e-4, "weight of the flatten loss in mu * L_g (Eq. 4.2)", ge=0.0)
+    latent_noise: float = field_(0.0, "Gaussian noise added to z_T before the classifier in stages 2 and 3, in "
+                                      "units of the batch's per-coordinate spread (0: none, as the thesis)", ge=0.0)
     task_weight: float = field_(1.0, "weight of L_task in stage 2 (Eq. 4.4: 1)", ge=0.0)
     precision: Literal["fp32", "bf16", "auto"] = field_("fp32", "fp32, bf16, or auto (bf16 where the hardware has "
                                                                 "it natively)")

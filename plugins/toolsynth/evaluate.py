@@ -110,6 +110,14 @@ def footprint_overlap(decoded, true) -> float:
     return float(decoded.intersection(true).area / union) if union > 0 else 0.0
 
 
+def moved(z_start: torch.Tensor, z_end: torch.Tensor) -> float:
+    """How far imagination took the latents: the mean of |z_end - z_start| in units of the mean
+    distance between two start latents (two different tools). Far below 1, the classifier was
+    talked into success by a move that hardly changes the tool."""
+    between = torch.pdist(z_start).mean() if len(z_start) > 1 else torch.tensor(float("nan"))
+    return float((z_end - z_start).norm(dim=1).mean() / between)
+
+
 def confirm_in_sim(ctx: Context, tasks: list[Task], verdicts, shapes) -> tuple[int, int]:
     """How many of the geometric successes the simulator confirms by contacts (of how many)."""
     confirmed = checked = 0
@@ -183,6 +191,7 @@ def evaluate(ctx: Context) -> dict[str, Any]:
         verdicts, shapes = judge(model, run.z, tasks)
         success = np.array([v.feasible for v in verdicts])
         r = {"success": rates(success, types, letters), "reached_threshold": float(run.reached.mean()),
+             "latent_moved": moved(z_start, run.z),
              "mean_steps": float(run.steps[run.reached].mean()) if run.reached.any() else float("nan"),
              "p_start": float(run.p_start.mean()), "p_end": float(run.p_end.mean())}
         if cfg.sim_check:

@@ -255,6 +255,20 @@ def p_success(logits: torch.Tensor) -> torch.Tensor:
     return torch.softmax(logits, dim=1)[:, 1]
 
 
+def jitter(z_tool: torch.Tensor, scale: float) -> torch.Tensor:
+    """z_T plus Gaussian noise of ``scale`` times the batch's per-coordinate spread (detached), the
+    classifier's input in training when ``train.latent_noise`` > 0. A classifier that must agree on
+    a neighbourhood of each latent is smooth in z_T, and its gradient, which imagination follows,
+    points where the other class's latents lie rather than along small moves that fool it
+    (randomised smoothing; Kaur et al. 2019, "Are perceptually-aligned gradients a general property
+    of robust classifiers?"). The spread is measured per batch, so the encoder cannot outgrow the
+    noise by scaling its latents up."""
+    if scale <= 0 or len(z_tool) < 2:
+        return z_tool
+    spread = z_tool.detach().std(dim=0, keepdim=True)
+    return z_tool + scale * spread * torch.randn_like(z_tool)
+
+
 def task_loss(logits: torch.Tensor, rho: torch.Tensor) -> torch.Tensor:
     """L_task (Eq. 4.3): the binary cross-entropy of p(success) against rho in {0, 1}, meaned."""
     return F.cross_entropy(logits, rho.long())

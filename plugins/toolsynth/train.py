@@ -164,7 +164,7 @@ def train(ctx: Context) -> dict[str, Any]:
     from physint_cli.runs import Run
     from physint_cli.training import fit
 
-    from .model import task_loss
+    from .model import jitter, task_loss
 
     cfg = ctx.config.train
     manifest, data_cfg = data_config(ctx.data)
@@ -182,7 +182,7 @@ def train(ctx: Context) -> dict[str, Any]:
     run = ctx.output()
     meta = {"method": "toolsynth", "model": name, "kwargs": kwargs, "backend": manifest["backend"],
             "dataset": str(ctx.data), "views": int(data_cfg["views"]), "elevation": elevation, "train_types": "".join(train_types),
-            "sigma": float(cfg.sigma)}
+            "sigma": float(cfg.sigma), "latent_noise": float(cfg.latent_noise)}
     ctx.log(f"training {name} on {len(labels)} records of types {''.join(train_types)} "
             f"({labels.mean():.0%} feasible), validating on {len(val_arrays['label'])}")
 
@@ -197,10 +197,12 @@ def train(ctx: Context) -> dict[str, Any]:
 
     def joint_loss(net, batch):  # Eq. 4.4: L_recon + L_task, through psi as well
         loss, z = recon(net, batch)
-        return loss + cfg.task_weight * task_loss(net.classify(net.encode_task(batch["task"]), z), batch["label"])
+        logits = net.classify(net.encode_task(batch["task"]), jitter(z, cfg.latent_noise))
+        return loss + cfg.task_weight * task_loss(logits, batch["label"])
 
     def head_loss(net, batch):  # L_task on the frozen encoder's latents
-        return task_loss(net.classify(net.encode_task(batch["task"]), batch["z_tool"]), batch["label"])
+        logits = net.classify(net.encode_task(batch["task"]), jitter(batch["z_tool"], cfg.latent_noise))
+        return task_loss(logits, batch["label"])
 
     def stage(title: str, net, train_set, loss_fn, key: str, epochs: int, lr: float):
         directory = run.path / "stages" / title
