@@ -110,12 +110,16 @@ def footprint_overlap(decoded, true) -> float:
     return float(decoded.intersection(true).area / union) if union > 0 else 0.0
 
 
-def moved(z_start: torch.Tensor, z_end: torch.Tensor) -> float:
-    """How far imagination took the latents: the mean of |z_end - z_start| in units of the mean
-    distance between two start latents (two different tools). Far below 1, the classifier was
-    talked into success by a move that hardly changes the tool."""
-    between = torch.pdist(z_start).mean() if len(z_start) > 1 else torch.tensor(float("nan"))
-    return float((z_end - z_start).norm(dim=1).mean() / between)
+def between_tools(z: torch.Tensor) -> float:
+    """The mean distance between two of the latents ``z`` (two different tools): the unit of ``latent_moved``."""
+    return float(torch.pdist(z).mean()) if len(z) > 1 else float("nan")
+
+
+def moved(z_start: torch.Tensor, z_end: torch.Tensor, unit: float) -> float:
+    """How far imagination took the latents: the mean of |z_end - z_start| in units of ``unit``
+    (:func:`between_tools` of the start latents). Far below 1, the classifier was talked into
+    success by a move that hardly changes the tool."""
+    return float((z_end - z_start).norm(dim=1).mean()) / unit
 
 
 def confirm_in_sim(ctx: Context, tasks: list[Task], verdicts, shapes) -> tuple[int, int]:
@@ -183,6 +187,7 @@ def evaluate(ctx: Context) -> dict[str, Any]:
     results: dict[str, Any] = {}
     rows = []
     start = {which: latents(model, records, index) for which, model in models.items()}  # each model's, once
+    unit = {which: between_tools(z_start) for which, (_, z_start) in start.items()}
     for name, which, method in RUNS:
         model = models[which]
         z_task, z_start = start[which]
@@ -191,7 +196,7 @@ def evaluate(ctx: Context) -> dict[str, Any]:
         verdicts, shapes = judge(model, run.z, tasks)
         success = np.array([v.feasible for v in verdicts])
         r = {"success": rates(success, types, letters), "reached_threshold": float(run.reached.mean()),
-             "latent_moved": moved(z_start, run.z),
+             "latent_moved": moved(z_start, run.z, unit[which]),
              "mean_steps": float(run.steps[run.reached].mean()) if run.reached.any() else float("nan"),
              "p_start": float(run.p_start.mean()), "p_end": float(run.p_end.mean())}
         if cfg.sim_check:
