@@ -57,6 +57,20 @@ def test_check_judges_a_mesh_footprint_as_it_judges_the_outline():
     assert not feasibility.check(None, OPEN).feasible  # a mesh with no area from above reaches nothing
 
 
+def test_footprint_of_a_folded_closed_mesh_needs_only_its_counter_clockwise_triangles():
+    rng = np.random.default_rng(0)
+    for _ in range(5):  # icospheres pulled about until they fold through themselves
+        sphere = trimesh.creation.icosphere(subdivisions=2)
+        vertices = sphere.vertices * [0.1, 0.2, 0.02] + rng.normal(0, 0.03, sphere.vertices.shape)
+        half = feasibility.mesh_footprint(vertices, sphere.faces, simplify=0.0)
+        every = feasibility.mesh_footprint(vertices, sphere.faces, simplify=0.0, closed=False)
+        assert half.symmetric_difference(every).area < 1e-4 * every.area
+    # an open mesh needs all of them: one triangle seen from below has no counter-clockwise one
+    flipped = np.array([[0, 0, 0], [0, 0.1, 0], [0.1, 0, 0]])
+    assert feasibility.mesh_footprint(flipped, [[0, 1, 2]]) is None
+    assert feasibility.mesh_footprint(flipped, [[0, 1, 2]], closed=False).area == pytest.approx(0.005, rel=1e-3)
+
+
 def test_every_type_has_feasible_and_infeasible_tools():
     rng = np.random.default_rng(0)
     for kind in TYPES:

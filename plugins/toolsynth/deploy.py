@@ -99,7 +99,8 @@ def start_tool(path: str, task: Task, rng: np.random.Generator, tries: int = 200
 
         try:
             mesh = trimesh.load(path, force="mesh")
-            shape = feasibility.mesh_footprint(mesh.vertices, mesh.faces)
+            closed = bool(mesh.is_watertight and mesh.is_winding_consistent)
+            shape = feasibility.mesh_footprint(mesh.vertices, mesh.faces, closed=closed)
         except Exception as exc:  # trimesh raises many kinds for a file that is not a mesh
             raise BadInput(f"deploy.tool {path}: not a mesh trimesh can read ({type(exc).__name__})") from None
         if shape is None:

@@ -108,18 +108,21 @@ def outline(geometry):
     return Polygon(geometry.exterior.coords)
 
 
-def mesh_footprint(vertices: np.ndarray, faces: np.ndarray, simplify: float = 0.001):
+def mesh_footprint(vertices: np.ndarray, faces: np.ndarray, simplify: float = 0.001, closed: bool = True):
     """A mesh's top-down outline: the union of its triangles projected on the table (x, y), as one
-    polygon (``outline``), simplified to ``simplify`` m; None for a mesh with no area from above."""
+    polygon (``outline``), simplified to ``simplify`` m; None for a mesh with no area from above.
+    A vertical line through the outline crosses a ``closed``, consistently wound surface as often
+    upwards as downwards, so the triangles whose projection winds counter-clockwise cover the
+    outline alone (even where the surface folds through itself): half the triangles to unite."""
     import shapely
 
     tri = np.asarray(vertices, float)[np.asarray(faces)][:, :, :2]  # (F, 3, 2)
-    area = 0.5 * np.abs((tri[:, 1, 0] - tri[:, 0, 0]) * (tri[:, 2, 1] - tri[:, 0, 1])
-                        - (tri[:, 2, 0] - tri[:, 0, 0]) * (tri[:, 1, 1] - tri[:, 0, 1]))
-    tri = tri[area > 1e-10]
+    signed = 0.5 * ((tri[:, 1, 0] - tri[:, 0, 0]) * (tri[:, 2, 1] - tri[:, 0, 1])
+                    - (tri[:, 2, 0] - tri[:, 0, 0]) * (tri[:, 1, 1] - tri[:, 0, 1]))
+    tri = tri[signed > 1e-10] if closed else tri[np.abs(signed) > 1e-10]
     if not len(tri):
         return None
-    union = shapely.union_all(shapely.buffer(shapely.polygons(tri), 1e-6))
+    union = shapely.union_all(shapely.buffer(shapely.polygons(tri), 1e-6, join_style="mitre"))
     shape = outline(union)
     return None if shape is None else shape.simplify(simplify)
 
