@@ -81,7 +81,7 @@ def main(argv: list[str] | None = None) -> int:
             rows.append((f"Table 4.1 {name}, {letter}", "-" if thesis is None else f"{thesis:.1f} %",
                          rate(r["success"].get(letter)), "~0 % (control)" if name == "no-op" else "-"))
         rows.append((f"  {name}: reached p >= {ev['threshold']}, mean steps", "-",
-                     f"{pct(r['reached_threshold'])}, {r['mean_steps']:.0f}", f"cap {ev['max_steps']}"))
+                     f"{pct(r['reached_threshold'])}, " + ("-" if r["mean_steps"] is None else f"{r['mean_steps']:.0f}"), f"cap {ev['max_steps']}"))
         if "latent_moved" in r:
             rows.append((f"  {name}: distance moved in z_T / distance between two tools", "-",
                          f"{r['latent_moved']:.2f}", "-"))

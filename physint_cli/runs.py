@@ -128,7 +128,10 @@ class Run:
         return load_checkpoint(path, device)
 
     def artifact(self, name: str) -> Path:
-        return self.path / ARTIFACTS / name
+        """Where artifact ``name`` goes (its folder made, also in a run resumed from a copy)."""
+        path = self.path / ARTIFACTS / name
+        path.parent.mkdir(parents=True, exist_ok=True)
+        return path
 
     def log_metrics(self, step: int, **metrics: Any) -> None:
         """Append one point of the training/evaluation curves to metrics.jsonl."""

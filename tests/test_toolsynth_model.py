@@ -256,3 +256,42 @@ def test_jitter_scales_with_the_batch_spread_and_is_off_at_zero():
     z.requires_grad_(True)
     model.jitter(z, 0.5).sum().backward()  # the spread is detached: the gradient to z is the identity's
     assert torch.allclose(z.grad, torch.ones_like(z))
+
+
+def _hard_batch(tasks, labels):
+    from physint_plugins.toolsynth.tasks import MAX_OBSTACLES
+
+    rows = [t.to_arrays() for t in tasks]
+    batch = {k: torch.as_tensor(np.stack([r[k] for r in rows])) for k in rows[0]}
+    assert batch["obstacles"].shape[1] == MAX_OBSTACLES
+    return {**batch, "label": torch.tensor(labels)}
+
+
+def test_hard_examples_are_labelled_by_the_check_of_the_decoded_tool():
+    from physint_plugins.toolsynth.hard import HardExamples
+    from physint_plugins.toolsynth.imagine import judge
+    from physint_plugins.toolsynth.tasks import Task
+
+    torch.manual_seed(0)
+    net = model.ToolSynth(image_size=32, task_size=32, z_tool=16, z_task=8, width=0.25, task_width=0.25,
+                          subdivisions=1, deform="free")
+    with torch.no_grad():  # a classifier sure of success everywhere: imagination stops at once
+        net.classifier.mlp[-1].bias.copy_(torch.tensor([0.0, 10.0]))
+    near, far = Task("A", (0.0, -0.19)), Task("A", (0.0, 0.29))  # 3 cm / 51 cm beyond the red line
+    z_task, z_tool = torch.randn(6, 8), torch.randn(6, 16)
+    # the decoder's near-template plates reach the near target and not the far one
+    assert [v.feasible for v in judge(net, z_tool, [near] * 3 + [far] * 3)[0]] == [True] * 3 + [False] * 3
+    labels = [0, 1, 0, 0, 1, 0]
+    for task, share in ((near, 1.0), (far, 0.0)):
+        hard = HardExamples(count=3, steps=5, step=0.01, threshold=0.997, optimizer="adam")
+        batch = _hard_batch([task] * 6, labels)
+        loss = hard.loss(net, net, z_task, z_tool, batch)
+        assert hard.seen == 3 and hard.summary()["hard_feasible"] == share  # infeasible records only, at most 3
+        # the hard examples join the records in one mean: 6 records and 3 imagined tools
+        logits = net.classify(torch.cat([z_task, z_task[[0, 2, 3]]]), torch.cat([z_tool, z_tool[[0, 2, 3]]]))
+        expected = model.task_loss(logits, torch.tensor(labels + [int(share)] * 3))
+        assert torch.allclose(loss, expected)
+    off = HardExamples(count=0, steps=5, step=0.01, threshold=0.997, optimizer="adam")
+    assert torch.allclose(off.loss(net, net, z_task, z_tool, _hard_batch([far] * 6, labels)),
+                          model.task_loss(net.classify(z_task, z_tool), torch.tensor(labels)))
+    assert off.seen == 0

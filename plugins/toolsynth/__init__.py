@@ -16,6 +16,7 @@ by the other modules:
     softras.py      a differentiable soft silhouette rasteriser (S. Liu et al.)
     model.py        tool encoder psi, mesh decoder psi', task encoder phi, classifier (4.3, 4.B)
     train.py        the curriculum: reconstruction, then task-driven and task-unaware (4.4.2)
+    hard.py         hard examples: imagined tools labelled by the geometric check (a deviation)
     checkpoint.py   loading the trained models and a dataset's records (for evaluate and deploy)
     imagine.py      tool imagination by gradient descent in z_T, and the random walk (Eq. 4.5)
     evaluate.py     imagination against its baselines on the test tasks (Table 4.1)

@@ -21,7 +21,9 @@ Deviations from the thesis (docs/toolsynth.md says why):
 * the ring's cameras look down from 55 degrees (``data.elevation``; the thesis does not say): from
   30 degrees a 2 cm handle is one pixel wide at 64 px;
 * the decoder's vertices may cross the template's centre (``train.deform=free``; SoftRas keeps each
-  in its octant round a centroid, which leaves hooks a second leg, ``model.MeshDecoder``).
+  in its octant round a centroid, which leaves hooks a second leg, ``model.MeshDecoder``);
+* ``train.hard_examples`` (off in ``paper``) adds imagined tools labelled by the geometric check to
+  the classifier's batches in stages 2 and 3 (``hard.py``).
 """
 
 from __future__ import annotations
@@ -78,6 +80,8 @@ class TrainConfig:
     deform: Literal["octant", "free"] = field_("free", "how the decoder moves template vertices: octant "
                                                          "(SoftRas: each stays in its octant round a centroid) "
                                                          "or free (any coordinate may cross the centre)")
+    norm: Literal["batch", "group", "none"] = field_("batch", "normalisation after each tool-encoder convolution "
+                                                              "(SoftRas: batch)")
     sigma: float = field_(0.1, "softness of the silhouette rasteriser's edges (pixels squared; SoftRas: 0.1 "
                                "at 64 px). Softer edges bleed over thin handles, and the decoder learns to "
                                "shrink its tools to make up for it", gt=0.0)
@@ -85,6 +89,10 @@ class TrainConfig:
     flatten: float = field_(5e-4, "weight of the flatten loss in mu * L_g (Eq. 4.2)", ge=0.0)
     latent_noise: float = field_(0.0, "Gaussian noise added to z_T before the classifier in stages 2 and 3, in "
                                       "units of the batch's per-coordinate spread (0: none, as the thesis)", ge=0.0)
+    hard_examples: int = field_(0, "infeasible records per batch of stages 2 and 3 that imagination starts from, "
+                                   "the latents where it stops labelled by the geometric check for the "
+                                   "classifier (0: none, as the thesis; hard.py)", ge=0)
+    hard_steps: int = field_(100, "step cap of the imagination that makes hard examples", ge=1)
     task_weight: float = field_(1.0, "weight of L_task in stage 2 (Eq. 4.4: 1)", ge=0.0)
     precision: Literal["fp32", "bf16", "auto"] = field_("fp32", "fp32, bf16, or auto (bf16 where the hardware has "
                                                                 "it natively)")

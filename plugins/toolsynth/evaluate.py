@@ -34,7 +34,7 @@ from .checkpoint import FIELDS, load_models, load_split, view_cameras
 from .imagine import imagine, judge
 from .model import task_input, tool_input
 from .softras import hard_iou
-from .tasks import TYPES, Task, parse_types
+from .tasks import TYPES, Task, parse_types, tasks_of
 from .tools import Tool, footprint_parts
 
 # Table 4.1: success rates (%) of task-driven / task-unaware imagination and the random walk
@@ -43,11 +43,6 @@ THESIS = {"task-driven": {"A": 96.4, "B": 78.8, "C": 76.4, "D": 81.2, "E": 86.4,
           "random walk": {"A": 3.6, "B": 5.6, "C": 23.6, "D": 2.4, "E": 13.6, "total": 9.8}}
 RUNS = (("task-driven", "driven", "descent"), ("task-unaware", "unaware", "descent"),
         ("random walk", "driven", "random"), ("no-op", "driven", "none"))
-
-
-def tasks_of(records: dict[str, np.ndarray], index) -> list[Task]:
-    return [Task.from_record(records["type"][i], records["target"][i], records["obstacles"][i],
-                             records["n_obstacles"][i]) for i in index]
 
 
 def pick_instances(records: dict[str, np.ndarray], types: tuple[str, ...], per_type: int) -> np.ndarray:
@@ -197,7 +192,7 @@ def evaluate(ctx: Context) -> dict[str, Any]:
         success = np.array([v.feasible for v in verdicts])
         r = {"success": rates(success, types, letters), "reached_threshold": float(run.reached.mean()),
              "latent_moved": moved(z_start, run.z, unit[which]),
-             "mean_steps": float(run.steps[run.reached].mean()) if run.reached.any() else float("nan"),
+             "mean_steps": float(run.steps[run.reached].mean()) if run.reached.any() else None,  # of runs that reached
              "p_start": float(run.p_start.mean()), "p_end": float(run.p_end.mean())}
         if cfg.sim_check:
             confirmed, checked = confirm_in_sim(ctx, tasks, verdicts, shapes)

@@ -64,6 +64,12 @@ class Task:
                    [tuple(float(v) for v in o) for o in np.asarray(obstacles)[:n]])
 
 
+def tasks_of(records: dict, index) -> list[Task]:
+    """The tasks of records ``index`` of a dataset's arrays (or a batch of CPU tensors)."""
+    return [Task.from_record(records["type"][i], records["target"][i], records["obstacles"][i],
+                             records["n_obstacles"][i]) for i in index]
+
+
 def parse_types(text: str, what: str = "types") -> tuple[str, ...]:
     """``"ABCD"`` or ``"A,B,C,D"`` as a tuple of scenario types; an unknown letter exits 2."""
     from physint_cli.errors import BadInput

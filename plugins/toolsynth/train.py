@@ -36,6 +36,7 @@ from .softras import hard_iou
 from .tasks import TYPES, parse_types
 
 FIELDS = ["task", "tool_rgb", "tool_sil", "views", "label", "type"]
+TASK_FIELDS = ["target", "obstacles", "n_obstacles"]  # the geometric check of hard examples
 
 
 def build_model(name: str, data_cfg: dict[str, Any], cfg):
@@ -45,7 +46,7 @@ def build_model(name: str, data_cfg: dict[str, Any], cfg):
     kwargs = {"image_size": int(data_cfg["tool_size"]), "task_size": int(data_cfg["task_size"]),
               "z_tool": int(cfg.z_tool), "z_task": int(cfg.z_task), "width": float(cfg.width),
               "task_width": float(cfg.task_width), "subdivisions": int(cfg.subdivisions),
-              "deform": str(cfg.deform)}
+              "deform": str(cfg.deform), "norm": str(cfg.norm)}
     return registered_model("toolsynth", name).build(**kwargs), kwargs
 
 
@@ -75,7 +76,8 @@ def views_of(batch: dict[str, Any], first: Any) -> dict[str, Any]:
     b = torch.arange(len(batch["label"]))
     i = torch.as_tensor(first).long()
     out = {"task": task_input(batch["task"]), "label": batch["label"].long(), "type": batch["type"].long(),
-           "view_j": batch["views"][b, 1 - i].long(), "target_sil": (batch["tool_sil"][b, 1 - i] > 0).float()}
+           "view_j": batch["views"][b, 1 - i].long(), "target_sil": (batch["tool_sil"][b, 1 - i] > 0).float(),
+           **{k: batch[k] for k in TASK_FIELDS if k in batch}}
     if "latents" in batch:
         out["z_tool"] = batch["latents"][b, i].float()
     else:
@@ -164,13 +166,15 @@ def train(ctx: Context) -> dict[str, Any]:
     from physint_cli.runs import Run
     from physint_cli.training import fit
 
-    from .model import jitter, task_loss
+    from .hard import HardExamples
+    from .model import jitter
 
     cfg = ctx.config.train
     manifest, data_cfg = data_config(ctx.data)
     train_types = parse_types(data_cfg["train_types"], "data.train_types")
     name = ctx.model or MODEL
-    train_arrays, val_arrays = load_split(ctx.data, "train", FIELDS), load_split(ctx.data, "val", FIELDS)
+    fields = FIELDS + (TASK_FIELDS if cfg.hard_examples else [])
+    train_arrays, val_arrays = load_split(ctx.data, "train", fields), load_split(ctx.data, "val", FIELDS)
     labels = train_arrays["label"]
     if len(labels) < 2 or labels.min() == labels.max():
         raise BadInput(f"dataset {ctx.data} needs feasible and infeasible tools in its train split; "
@@ -182,7 +186,8 @@ def train(ctx: Context) -> dict[str, Any]:
     run = ctx.output()
     meta = {"method": "toolsynth", "model": name, "kwargs": kwargs, "backend": manifest["backend"],
             "dataset": str(ctx.data), "views": int(data_cfg["views"]), "elevation": elevation, "train_types": "".join(train_types),
-            "sigma": float(cfg.sigma), "latent_noise": float(cfg.latent_noise)}
+            "sigma": float(cfg.sigma), "latent_noise": float(cfg.latent_noise),
+            "hard_examples": int(cfg.hard_examples), "hard_steps": int(cfg.hard_steps)}
     ctx.log(f"training {name} on {len(labels)} records of types {''.join(train_types)} "
             f"({labels.mean():.0%} feasible), validating on {len(val_arrays['label'])}")
 
@@ -195,14 +200,19 @@ def train(ctx: Context) -> dict[str, Any]:
     def stage1_loss(net, batch):
         return recon(net, batch)[0]
 
+    evaluation = ctx.config.eval  # hard examples are imagined as eval imagines
+    hard = {title: HardExamples(cfg.hard_examples, cfg.hard_steps, evaluation.step, evaluation.threshold,
+                                evaluation.optimizer) for title in ("task-driven", "task-unaware")}
+
     def joint_loss(net, batch):  # Eq. 4.4: L_recon + L_task, through psi as well
         loss, z = recon(net, batch)
-        logits = net.classify(net.encode_task(batch["task"]), jitter(z, cfg.latent_noise))
-        return loss + cfg.task_weight * task_loss(logits, batch["label"])
+        z_task = net.encode_task(batch["task"])
+        return loss + cfg.task_weight * hard["task-driven"].loss(net, net, z_task, z, batch, jitter(z, cfg.latent_noise))
 
     def head_loss(net, batch):  # L_task on the frozen encoder's latents
-        logits = net.classify(net.encode_task(batch["task"]), jitter(batch["z_tool"], cfg.latent_noise))
-        return task_loss(logits, batch["label"])
+        z_tool = batch["z_tool"]
+        return hard["task-unaware"].loss(net, unaware, net.encode_task(batch["task"]), z_tool, batch,
+                                         jitter(z_tool, cfg.latent_noise))
 
     def stage(title: str, net, train_set, loss_fn, key: str, epochs: int, lr: float):
         directory = run.path / "stages" / title
@@ -243,6 +253,8 @@ def train(ctx: Context) -> dict[str, Any]:
             iou(net, loader)
             summary[title] = {**scores.last, "val_iou": iou.last["iou"]}
     summary["stage1_val_iou"] = results["recon"].best_metric
+    if cfg.hard_examples:  # in this process's epochs (a resumed stage counts from its restart)
+        summary["hard_examples"] = {k.replace("-", "_"): h.summary() for k, h in hard.items()}
     summary["epochs"] = {k: r.epochs for k, r in results.items()}
     summary["seconds"] = {k: round(sum(h.get("seconds", 0) for h in r.history), 1) for k, r in results.items()}
     run.save_trained(model=model.state_dict(), unaware=unaware.state_dict(), meta={**meta, "summary": summary})
