@@ -38,7 +38,7 @@ class HardExamples:
         """L_task (Eq. 4.3) of ``net``'s classifier on the batch's records (tool latents
         ``z_input``, default ``z_tool``) and on where imagination from its infeasible tools ends,
         labelled by the geometric check of ``decoder``'s meshes there, as one mean."""
-        logits = net.classify(z_task, z_tool if z_input is None else z_input)
+        z_task_all, z_tool_all = z_task, z_tool if z_input is None else z_input
         labels = batch["label"]
         pick = torch.nonzero(labels == 0).flatten()[:self.count]
         if self.count and len(pick):
@@ -49,9 +49,9 @@ class HardExamples:
             verdict = torch.tensor([int(v.feasible) for v in verdicts], device=labels.device)
             self.seen += len(verdict)
             self.feasible += int(verdict.sum())
-            logits = torch.cat([logits, net.classify(z_task[pick], ended.z)])
+            z_task_all, z_tool_all = torch.cat([z_task, z_task[pick]]), torch.cat([z_tool_all, ended.z])
             labels = torch.cat([labels, verdict])
-        return task_loss(logits, labels)
+        return task_loss(net.classify(z_task_all, z_tool_all), labels)  # records and hard examples: one batch
 
     def summary(self) -> dict[str, float]:
         return {"hard_examples": self.seen, "hard_feasible": self.feasible / max(self.seen, 1)}
