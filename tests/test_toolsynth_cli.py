@@ -31,7 +31,12 @@ def test_pipeline_trains_three_stages_and_reports_table_4_1(tiny_pipeline):
     assert tr["epochs"] == {"recon": 2, "task-driven": 2, "task-unaware": 2} and tr["train_types"] == "ABCD"
     for stage in ("1-reconstruction", "2-task-driven", "3-task-unaware"):
         assert (out / "train" / "stages" / stage / "checkpoints" / "best.pt").is_file()
+    driven, _, meta = load_models(out / "train")
+    for which in ("driven", "unaware"):  # the box imagination stays in (eval.latent_box)
+        low, high = (np.array(b) for b in meta["latent_box"][which])
+        assert low.shape == high.shape == (driven.kwargs["z_tool"],) and (low < high).all()
     ev = result["eval"]["metrics"]
+    assert ev["latent_box"] is True
     assert set(ev["imagination"]) == {"task-driven", "task-unaware", "random walk", "no-op"}
     for name, r in ev["imagination"].items():
         assert set(r["success"]) == {"A", "B", "C", "D", "E", "total"} and r["success"]["total"]["n"] == 20

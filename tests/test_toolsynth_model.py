@@ -295,3 +295,38 @@ def test_hard_examples_are_labelled_by_the_check_of_the_decoded_tool():
     assert torch.allclose(off.loss(net, net, z_task, z_tool, _hard_batch([far] * 6, labels)),
                           model.task_loss(net.classify(z_task, z_tool), torch.tensor(labels)))
     assert off.seen == 0
+
+
+def test_imagination_stays_in_the_box_of_the_training_latents():
+    from physint_plugins.toolsynth.imagine import imagine, latent_box
+
+    torch.manual_seed(0)
+    net = model.ToolSynth(image_size=32, task_size=32, z_tool=16, z_task=8, width=0.25, task_width=0.25,
+                          subdivisions=1, deform="free")
+    records = torch.randn(200, 16)
+    low, high = latent_box(records)
+    assert torch.equal(low, records.min(0).values) and torch.equal(high, records.max(0).values)
+    wide = latent_box(records, margin=0.5)
+    assert torch.allclose(wide[1] - wide[0], 2 * (high - low))
+    z_task, z0 = torch.randn(8, 8), records[:8]
+    for method in ("descent", "random"):
+        free = imagine(net, z_task, z0, method, step=0.5, max_steps=50, threshold=0.999999)
+        boxed = imagine(net, z_task, z0, method, step=0.5, max_steps=50, threshold=0.999999, box=(low, high))
+        assert ((free.z < low) | (free.z > high)).any()  # unbounded, 50 steps of 0.5 leave the box
+        assert ((boxed.z >= low) & (boxed.z <= high)).all()
+        assert not torch.equal(boxed.z, z0)  # and still moved
+
+
+def test_a_layer_latent_has_a_fixed_scale_that_weights_cannot_inflate():
+    torch.manual_seed(0)
+    enc = model.ToolEncoder(image_size=32, z_tool=16, width=0.25, latent="layer")
+    x = torch.rand(4, 4, 32, 32)
+    z = enc(x)
+    with torch.no_grad():
+        enc.fc[-1].weight.mul_(100.0)
+        enc.fc[-1].bias.mul_(100.0)
+    assert torch.allclose(enc(x).pow(2).mean(1), torch.ones(4), atol=1e-3)  # unit spread over coordinates
+    assert torch.allclose(enc(x), z, atol=1e-2)  # up to LayerNorm's eps
+    assert torch.allclose(z.mean(1), torch.zeros(4), atol=1e-5)
+    with pytest.raises(ValueError, match="latent"):
+        model.ToolEncoder(image_size=32, z_tool=16, latent="tanh")

@@ -56,3 +56,18 @@ def load_models(run_dir, device: str = "cpu"):
     unaware = registered_model("toolsynth", meta["model"]).build(**meta["kwargs"])
     unaware.load_state_dict(state["unaware"])
     return driven, unaware.to(device).eval(), meta
+
+
+def training_box(meta: dict[str, Any], which: str, model, root: Path | None = None):
+    """The box round the training records' tool latents of the run's ``which`` model ("driven" or
+    "unaware"), as (low, high) tensors: saved by training in ``meta["latent_box"]``; a run trained
+    before that gets it by encoding the training split of ``root`` (its dataset) now."""
+    import torch
+
+    from .imagine import encoded_box
+
+    saved = meta.get("latent_box", {}).get(which)
+    device = next(model.parameters()).device
+    if saved is not None:
+        return tuple(torch.tensor(b, dtype=torch.float32, device=device) for b in saved)
+    return encoded_box(model, load_split(Path(root or meta["dataset"]), "train", ["tool_rgb", "tool_sil"]))

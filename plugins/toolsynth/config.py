@@ -22,6 +22,11 @@ Deviations from the thesis (docs/toolsynth.md says why):
   30 degrees a 2 cm handle is one pixel wide at 64 px;
 * the decoder's vertices may cross the template's centre (``train.deform=free``; SoftRas keeps each
   in its octant round a centroid, which leaves hooks a second leg, ``model.MeshDecoder``);
+* imagination and the random walk stay inside the box round the training records' tool latents
+  (``eval.latent_box``, on): outside it the decoder draws tools unlike any record (one giant hook
+  for every task, once hard examples have taught the classifier to refuse sticks through walls);
+* a 64-dimensional z_T (``train.z_tool``; ``paper``: 512), and ``train.latent=layer`` standardises it over its coordinates (off in ``paper``: SoftRas's linear
+  layer), so that L_task cannot inflate the latent scale;
 * ``train.hard_examples`` (off in ``paper``) adds imagined tools labelled by the geometric check to
   the classifier's batches in stages 2 and 3 (``hard.py``).
 """
@@ -73,7 +78,7 @@ class TrainConfig:
                                    "classifier (thesis: 1e-4)", gt=0.0)
     width: float = field_(0.5, "tool encoder filter multiplier (1.0: SoftRas's 64-128-256)", gt=0.0)
     task_width: float = field_(0.5, "task encoder filter multiplier (1.0: Appendix 4.B's 16-32-64-64-128)", gt=0.0)
-    z_tool: int = field_(512, "size of the tool latent z_T", ge=2)
+    z_tool: int = field_(64, "size of the tool latent z_T (thesis, SoftRas: 512)", ge=2)
     z_task: int = field_(256, "size of the task latent z_G", ge=2)
     subdivisions: int = field_(2, "icosphere subdivisions of the template mesh (2: 162 vertices, 320 faces; "
                                   "SoftRas: 642 vertices)", ge=1, le=4)
@@ -82,6 +87,9 @@ class TrainConfig:
                                                          "or free (any coordinate may cross the centre)")
     norm: Literal["batch", "group", "none"] = field_("batch", "normalisation after each tool-encoder convolution "
                                                               "(SoftRas: batch)")
+    latent: Literal["linear", "layer"] = field_("layer", "the tool encoder's last layer: linear (SoftRas's) or "
+                                                          "layer (z_T standardised over its coordinates, a fixed "
+                                                          "scale that L_task cannot inflate)")
     sigma: float = field_(0.1, "softness of the silhouette rasteriser's edges (pixels squared; SoftRas: 0.1 "
                                "at 64 px). Softer edges bleed over thin handles, and the decoder learns to "
                                "shrink its tools to make up for it", gt=0.0)
@@ -89,7 +97,7 @@ class TrainConfig:
     flatten: float = field_(5e-4, "weight of the flatten loss in mu * L_g (Eq. 4.2)", ge=0.0)
     latent_noise: float = field_(0.0, "Gaussian noise added to z_T before the classifier in stages 2 and 3, in "
                                       "units of the batch's per-coordinate spread (0: none, as the thesis)", ge=0.0)
-    hard_examples: int = field_(0, "infeasible records per batch of stages 2 and 3 that imagination starts from, "
+    hard_examples: int = field_(8, "infeasible records per batch of stages 2 and 3 that imagination starts from, "
                                    "the latents where it stops labelled by the geometric check for the "
                                    "classifier (0: none, as the thesis; hard.py)", ge=0)
     hard_steps: int = field_(100, "step cap of the imagination that makes hard examples", ge=1)
@@ -109,6 +117,9 @@ class EvalConfig:
                                                        "eta times the gradient)")
     max_steps: int = field_(2000, "step cap S (thesis: 10,000)", ge=1)
     threshold: float = field_(0.997, "stop once p(success) reaches gamma", gt=0.0, lt=1.0)
+    latent_box: bool = field_(True, "keep imagination and the random walk inside the box of the training "
+                                     "records' tool latents (per coordinate their least and greatest value; not "
+                                     "in the thesis): beyond it the decoder extrapolates")
     sim_check: bool = field_(True, "also place each imagined tool in the simulator and check it by contacts")
 
     def validate(self) -> None:
@@ -140,11 +151,12 @@ PRESETS = {
     "tiny": {"data.train": 64, "data.val": 20, "data.test": 40, "data.task_size": 32, "data.tool_size": 32,
              "data.views": 4, "data.per_shard": 32, "data.sim_check": 0.2, "train.recon_epochs": 2,
              "train.joint_epochs": 2, "train.joint_lr": 3e-4, "train.batch_size": 8, "train.width": 0.25, "train.task_width": 0.25,
-             "train.z_tool": 64, "train.z_task": 32, "train.subdivisions": 1, "eval.instances": 4,
+             "train.z_tool": 64, "train.z_task": 32, "train.subdivisions": 1, "train.hard_examples": 0, "eval.instances": 4,
              "eval.max_steps": 100},
     "small": {},
     "paper": {"data.train": 16000, "data.val": 2500, "data.test": 2500, "data.task_size": 128,
               "data.tool_size": 128, "data.per_shard": 250, "data.sim_check": 0.02, "train.batch_size": 16,
-              "train.lr": 1e-4, "train.width": 1.0, "train.task_width": 1.0, "train.subdivisions": 3,
+              "train.lr": 1e-4, "train.z_tool": 512, "train.latent": "linear", "train.hard_examples": 0,
+              "train.width": 1.0, "train.task_width": 1.0, "train.subdivisions": 3,
               "train.recon_epochs": 40, "train.joint_epochs": 40, "eval.instances": 250, "eval.max_steps": 10000},
 }

@@ -27,7 +27,7 @@ from physint_cli.method import Context, unit_seed
 
 from . import feasibility
 from . import scenes as S
-from .checkpoint import load_models
+from .checkpoint import load_models, training_box
 from .imagine import footprints, imagine
 from .model import task_input, tool_input
 from .tasks import EXTENT, LINE_Y, Task, parse_types, sample_task
@@ -166,7 +166,8 @@ def deploy(ctx: Context) -> dict[str, Any]:
         z0 = driven.encode_tool(tool_input(record["tool_rgb"][:1], record["tool_sil"][:1]))
     keep = cfg.every or max(1, ecfg.max_steps // 64)
     run = imagine(driven, z_task, z0, "descent", ecfg.step, ecfg.max_steps, ecfg.threshold, seed=ctx.seed,
-                  keep_every=keep, optimizer=ecfg.optimizer)
+                  keep_every=keep, optimizer=ecfg.optimizer,
+                  box=training_box(meta, "driven", driven) if ecfg.latent_box else None)
     zs = torch.cat([z for _, z, _ in run.trace])
     shapes = footprints(driven, zs)
     verdicts = [feasibility.check(s, task) for s in shapes]

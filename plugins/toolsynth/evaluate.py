@@ -10,6 +10,10 @@ same ones). Each is imagined from its tool's first stored view by:
 * **no-op**: the start latent decoded unchanged (a control: reconstruction error alone should
   almost never turn an infeasible tool into a feasible one).
 
+With ``eval.latent_box`` (the default) every process, the random walk's too, is kept inside the
+box round its model's training latents (``checkpoint.training_box``): beyond it the decoder
+extrapolates to tools no record resembles, and the classifier was never asked about them.
+
 A run succeeds when the decoded tool passes the geometric check on its task (``feasibility.check``
 on the mesh seen from above); with ``eval.sim_check`` each success is also placed in the simulator
 (its outline as convex parts) and confirmed by contacts. Reported beside the thesis: success per
@@ -30,7 +34,7 @@ from physint_cli.method import Context
 from physint_cli.stats import ci95
 
 from . import scenes as S
-from .checkpoint import FIELDS, load_models, load_split, view_cameras
+from .checkpoint import FIELDS, load_models, load_split, training_box, view_cameras
 from .imagine import imagine, judge
 from .model import task_input, tool_input
 from .softras import hard_iou
@@ -182,12 +186,13 @@ def evaluate(ctx: Context) -> dict[str, Any]:
     results: dict[str, Any] = {}
     rows = []
     start = {which: latents(model, records, index) for which, model in models.items()}  # each model's, once
+    box = {which: training_box(meta, which, model, root) if cfg.latent_box else None for which, model in models.items()}
     unit = {which: between_tools(z_start) for which, (_, z_start) in start.items()}
     for name, which, method in RUNS:
         model = models[which]
         z_task, z_start = start[which]
         run = imagine(model, z_task, z_start, method, cfg.step, cfg.max_steps, cfg.threshold, seed=ctx.seed,
-                      optimizer=cfg.optimizer)
+                      optimizer=cfg.optimizer, box=box[which])
         verdicts, shapes = judge(model, run.z, tasks)
         success = np.array([v.feasible for v in verdicts])
         r = {"success": rates(success, types, letters), "reached_threshold": float(run.reached.mean()),
@@ -211,5 +216,5 @@ def evaluate(ctx: Context) -> dict[str, Any]:
     out.artifact("table_4_1.md").write_text(table(results, letters))
     out.artifact("instances.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
     return {"instances": int(len(index)), "types": "".join(letters), "step": cfg.step, "max_steps": cfg.max_steps,
-            "threshold": cfg.threshold, "imagination": results, "test": scores, "thesis": THESIS,
+            "threshold": cfg.threshold, "latent_box": cfg.latent_box, "imagination": results, "test": scores, "thesis": THESIS,
             "dataset": str(root), "trained_on": meta["backend"]}

@@ -15,7 +15,9 @@ Adam at learning rate eta moves each coordinate by about eta per step, the same 
 random walk's steps, so the two searches cover comparable distances. Adam's moments are
 elementwise, so one optimiser over the batch is one per instance. The random walk
 (Section 4.4.3's baseline) steps z_T <- z_T + eta * eps, eps ~ N(0, I), with the same stop rule;
-the no-op control decodes the start latent unchanged. :func:`judge` decodes final latents to meshes
+the no-op control decodes the start latent unchanged. With a ``box`` (:func:`latent_box` of the
+training records' latents, not in the thesis) each step is clipped to it, coordinate by coordinate.
+:func:`judge` decodes final latents to meshes
 and asks the geometric check (``feasibility.check`` on the mesh seen from above) whether they reach.
 """
 
@@ -50,10 +52,11 @@ class Imagination:
 
 def imagine(model, z_task: torch.Tensor, z_start: torch.Tensor, method: str = "descent", step: float = 0.01,
             max_steps: int = 2000, threshold: float = 0.997, seed: int = 0, keep_every: int = 0,
-            optimizer: str = "adam") -> Imagination:
+            optimizer: str = "adam", box: tuple[torch.Tensor, torch.Tensor] | None = None) -> Imagination:
     """Run ``method`` (``descent``: Eq. 4.5 with ``optimizer``; ``random``: the random walk;
     ``none``: no-op) from ``z_start`` (B, Z) for tasks ``z_task`` (B, Z_G) with the classifier of
-    ``model``."""
+    ``model``. With ``box`` (low, high), each of shape (Z,), every step is clipped to that box
+    (:func:`latent_box`)."""
     if method not in METHODS:
         raise ValueError(f"imagination method must be one of {', '.join(METHODS)}, got {method!r}")
     if optimizer not in OPTIMIZERS:
@@ -87,6 +90,8 @@ def imagine(model, z_task: torch.Tensor, z_start: torch.Tensor, method: str = "d
         else:
             move = step * torch.randn(z.shape, generator=gen, device=z.device)
         z = torch.where(active[:, None], z + move, z)
+        if box is not None:
+            z = torch.minimum(torch.maximum(z, box[0]), box[1])
         steps += active.long()
         with torch.no_grad():
             p = torch.where(active, p_success(model.classify(z_task, z)), p)
@@ -97,6 +102,28 @@ def imagine(model, z_task: torch.Tensor, z_start: torch.Tensor, method: str = "d
         trace.append((int(steps.max()), z.clone(), p.cpu().numpy()))
     return Imagination(z.detach(), steps.cpu().numpy(), p0.cpu().numpy(), p.cpu().numpy(),
                        (p >= threshold).cpu().numpy(), trace)
+
+
+def latent_box(z: torch.Tensor, margin: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
+    """The box round latents ``z`` (N, Z): per coordinate their least and greatest value, widened
+    by ``margin`` times the range on each side."""
+    low, high = z.min(0).values, z.max(0).values
+    pad = margin * (high - low)
+    return (low - pad).detach(), (high + pad).detach()
+
+
+def encoded_box(model, tools: dict[str, np.ndarray], batch: int = 256) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`latent_box` of ``model``'s z_T of every stored view of the records ``tools``
+    (``tool_rgb`` (N, 2, S, S, 3) and ``tool_sil`` (N, 2, S, S))."""
+    from .model import tool_input
+
+    z = []
+    with torch.no_grad():
+        for s in range(0, len(tools["tool_rgb"]), batch):
+            z += [model.encode_tool(tool_input(torch.as_tensor(tools["tool_rgb"][s:s + batch, v]),
+                                               torch.as_tensor(tools["tool_sil"][s:s + batch, v])))
+                  for v in range(tools["tool_rgb"].shape[1])]
+    return latent_box(torch.cat(z))
 
 
 def footprints(model, z: torch.Tensor, batch: int = 256) -> list:

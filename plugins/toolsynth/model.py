@@ -6,6 +6,8 @@
   normalisation and ReLU, down to an 8x8 map (a 128 px image gets a fourth block, of 256), then
   FC 1024, FC 1024 (ReLU) and a linear FC to z_T (512). z_T is left linear, not rectified, so that
   imagination (Eq. 4.5) can move it either way along every axis.
+  ``latent="layer"`` standardises z_T over its coordinates (a LayerNorm without weights), so its
+  scale is fixed and L_task cannot inflate it (the small preset).
 * :class:`MeshDecoder` psi': z_T -> the vertices of a deformed template icosphere. SoftRas's
   decoder: FC 1024, FC 2048 (ReLU), then a centroid c (3) and an offset per vertex coordinate. A
   template coordinate x keeps its sign: it becomes u = sign(x) sigmoid(logit|x| + offset) in
@@ -54,6 +56,7 @@ TASK_FILTERS = (16, 32, 64, 64, 128)  # Appendix 4.B
 FLAT_TEMPLATE = (0.3, 0.75, 0.1)  # template scale per axis: a flat plate along y (SoftRas: 0.5, 0.5, 0.5)
 NORMS = ("batch", "group", "none")
 DEFORMS = ("octant", "free")
+LATENTS = ("linear", "layer")
 
 
 def _channels(filters: int, width: float) -> int:
@@ -83,10 +86,12 @@ class ToolEncoder(nn.Module):
     """psi (Eq. 4.1): (B, 4, S, S) tool RGB + silhouette in [0, 1] -> z_T (B, z_tool)."""
 
     def __init__(self, image_size: int = 64, z_tool: int = 512, width: float = 1.0, norm: str = "batch",
-                 hidden: int = 1024):
+                 hidden: int = 1024, latent: str = "linear"):
         super().__init__()
         if norm not in NORMS:
             raise ValueError(f"norm {norm!r} is not known; valid: {', '.join(NORMS)}")
+        if latent not in LATENTS:
+            raise ValueError(f"latent {latent!r} is not known; valid: {', '.join(LATENTS)}")
         layers: list[nn.Module] = []
         channels, side = 4, image_size
         for i in range(tool_blocks(image_size)):
@@ -96,9 +101,11 @@ class ToolEncoder(nn.Module):
         self.convs = nn.Sequential(*layers)
         self.fc = nn.Sequential(nn.Linear(channels * side * side, hidden), nn.ReLU(inplace=True),
                                 nn.Linear(hidden, hidden), nn.ReLU(inplace=True), nn.Linear(hidden, z_tool))
+        # "layer": each z_T standardised over its coordinates, so its scale is fixed
+        self.out = nn.LayerNorm(z_tool, elementwise_affine=False) if latent == "layer" else nn.Identity()
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.fc(self.convs(x.contiguous(memory_format=torch.channels_last)).flatten(1))
+        return self.out(self.fc(self.convs(x.contiguous(memory_format=torch.channels_last)).flatten(1)))
 
 
 class MeshDecoder(nn.Module):
@@ -299,15 +306,15 @@ class ToolSynth(nn.Module):
                  width: float = 1.0, task_width: float = 1.0, subdivisions: int = 2, extent: float = 0.3,
                  norm: str = "batch", template_scale: tuple[float, float, float] = FLAT_TEMPLATE,
                  hidden: int = 1024, decoder_hidden: tuple[int, int] = (1024, 2048),
-                 classifier_hidden: tuple[int, int] = (1024, 512), deform: str = "octant"):
+                 classifier_hidden: tuple[int, int] = (1024, 512), deform: str = "octant", latent: str = "linear"):
         super().__init__()
         self.kwargs = dict(image_size=image_size, task_size=task_size, z_tool=z_tool, z_task=z_task, width=width,
                            task_width=task_width, subdivisions=subdivisions, extent=extent, norm=norm,
                            template_scale=tuple(template_scale), hidden=hidden,
                            decoder_hidden=tuple(decoder_hidden), classifier_hidden=tuple(classifier_hidden),
-                           deform=deform)
+                           deform=deform, latent=latent)
         self.extent = extent
-        self.encoder = ToolEncoder(image_size, z_tool, width, norm, hidden)  # psi
+        self.encoder = ToolEncoder(image_size, z_tool, width, norm, hidden, latent)  # psi
         self.decoder = MeshDecoder(z_tool, subdivisions, extent, tuple(template_scale), tuple(decoder_hidden),
                                    deform=deform)  # psi'
         self.task_encoder = TaskEncoder(task_size, z_task, task_width)  # phi

@@ -46,7 +46,8 @@ def build_model(name: str, data_cfg: dict[str, Any], cfg):
     kwargs = {"image_size": int(data_cfg["tool_size"]), "task_size": int(data_cfg["task_size"]),
               "z_tool": int(cfg.z_tool), "z_task": int(cfg.z_task), "width": float(cfg.width),
               "task_width": float(cfg.task_width), "subdivisions": int(cfg.subdivisions),
-              "deform": str(cfg.deform), "norm": str(cfg.norm)}
+              "deform": str(cfg.deform), "norm": str(cfg.norm),
+              "latent": str(cfg.latent)}
     return registered_model("toolsynth", name).build(**kwargs), kwargs
 
 
@@ -167,6 +168,7 @@ def train(ctx: Context) -> dict[str, Any]:
     from physint_cli.training import fit
 
     from .hard import HardExamples
+    from .imagine import encoded_box
     from .model import jitter
 
     cfg = ctx.config.train
@@ -257,6 +259,9 @@ def train(ctx: Context) -> dict[str, Any]:
         summary["hard_examples"] = {k.replace("-", "_"): h.summary() for k, h in hard.items()}
     summary["epochs"] = {k: r.epochs for k, r in results.items()}
     summary["seconds"] = {k: round(sum(h.get("seconds", 0) for h in r.history), 1) for k, r in results.items()}
+    # where imagination may go (eval.latent_box): the box round each model's training latents
+    meta["latent_box"] = {which: [b.tolist() for b in encoded_box(net.eval(), train_arrays)]
+                          for which, net in (("driven", model), ("unaware", unaware))}
     run.save_trained(model=model.state_dict(), unaware=unaware.state_dict(), meta={**meta, "summary": summary})
     for title, result, loss, metric in (
             ("1-reconstruction", results["recon"], "train L_recon (Eq. 4.2)", "val IoU"),
