@@ -64,10 +64,11 @@ def training_box(meta: dict[str, Any], which: str, model, root: Path | None = No
     before that gets it by encoding the training split of ``root`` (its dataset) now."""
     import torch
 
-    from .imagine import encoded_box
+    from .imagine import encode_views, latent_box
 
     saved = meta.get("latent_box", {}).get(which)
     device = next(model.parameters()).device
     if saved is not None:
         return tuple(torch.tensor(b, dtype=torch.float32, device=device) for b in saved)
-    return encoded_box(model, load_split(Path(root or meta["dataset"]), "train", ["tool_rgb", "tool_sil"]))
+    tools = load_split(Path(root or meta["dataset"]), "train", ["tool_rgb", "tool_sil"])
+    return tuple(b.to(device) for b in latent_box(torch.as_tensor(encode_views(model, tools)).flatten(0, 1)))

@@ -25,8 +25,8 @@ Deviations from the thesis (docs/toolsynth.md says why):
 * imagination and the random walk stay inside the box round the training records' tool latents
   (``eval.latent_box``, on): outside it the decoder draws tools unlike any record (one giant hook
   for every task, once hard examples have taught the classifier to refuse sticks through walls);
-* a 64-dimensional z_T (``train.z_tool``; ``paper``: 512), and ``train.latent=layer`` standardises it over its coordinates (off in ``paper``: SoftRas's linear
-  layer), so that L_task cannot inflate the latent scale;
+* a 64-dimensional z_T (``train.z_tool``; ``paper``: 512), and ``train.latent=layer`` standardises
+  it over its coordinates (``paper``: SoftRas's linear layer), so that L_task cannot inflate its scale;
 * ``train.hard_examples`` (off in ``paper``) adds imagined tools labelled by the geometric check to
   the classifier's batches in stages 2 and 3 (``hard.py``).
 """

@@ -91,7 +91,7 @@ def imagine(model, z_task: torch.Tensor, z_start: torch.Tensor, method: str = "d
             move = step * torch.randn(z.shape, generator=gen, device=z.device)
         z = torch.where(active[:, None], z + move, z)
         if box is not None:
-            z = torch.minimum(torch.maximum(z, box[0]), box[1])
+            z = z.clamp(box[0], box[1])
         steps += active.long()
         with torch.no_grad():
             p = torch.where(active, p_success(model.classify(z_task, z)), p)
@@ -112,18 +112,19 @@ def latent_box(z: torch.Tensor, margin: float = 0.0) -> tuple[torch.Tensor, torc
     return (low - pad).detach(), (high + pad).detach()
 
 
-def encoded_box(model, tools: dict[str, np.ndarray], batch: int = 256) -> tuple[torch.Tensor, torch.Tensor]:
-    """:func:`latent_box` of ``model``'s z_T of every stored view of the records ``tools``
-    (``tool_rgb`` (N, 2, S, S, 3) and ``tool_sil`` (N, 2, S, S))."""
+def encode_views(model, arrays: dict[str, np.ndarray], batch: int = 256) -> np.ndarray:
+    """z_T (N, 2, Z) of both stored views of every record (``tool_rgb`` (N, 2, S, S, 3) and
+    ``tool_sil`` (N, 2, S, S)), by the model's encoder in eval mode."""
     from .model import tool_input
 
-    z = []
+    model.eval()
+    out = []
     with torch.no_grad():
-        for s in range(0, len(tools["tool_rgb"]), batch):
-            z += [model.encode_tool(tool_input(torch.as_tensor(tools["tool_rgb"][s:s + batch, v]),
-                                               torch.as_tensor(tools["tool_sil"][s:s + batch, v])))
-                  for v in range(tools["tool_rgb"].shape[1])]
-    return latent_box(torch.cat(z))
+        for s in range(0, len(arrays["tool_rgb"]), batch):
+            rgb = torch.as_tensor(arrays["tool_rgb"][s:s + batch])
+            sil = torch.as_tensor(arrays["tool_sil"][s:s + batch])
+            out.append(torch.stack([model.encode_tool(tool_input(rgb[:, v], sil[:, v])) for v in range(2)], 1).numpy())
+    return np.concatenate(out)
 
 
 def footprints(model, z: torch.Tensor, batch: int = 256) -> list:

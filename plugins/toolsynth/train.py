@@ -46,8 +46,7 @@ def build_model(name: str, data_cfg: dict[str, Any], cfg):
     kwargs = {"image_size": int(data_cfg["tool_size"]), "task_size": int(data_cfg["task_size"]),
               "z_tool": int(cfg.z_tool), "z_task": int(cfg.z_task), "width": float(cfg.width),
               "task_width": float(cfg.task_width), "subdivisions": int(cfg.subdivisions),
-              "deform": str(cfg.deform), "norm": str(cfg.norm),
-              "latent": str(cfg.latent)}
+              "deform": str(cfg.deform), "norm": str(cfg.norm), "latent": str(cfg.latent)}
     return registered_model("toolsynth", name).build(**kwargs), kwargs
 
 
@@ -145,22 +144,6 @@ class TaskHead(nn.Module):
         return self.classifier(z_task, z_tool)
 
 
-def encode_views(model, arrays: dict[str, np.ndarray], batch: int = 256) -> np.ndarray:
-    """z_T (N, 2, Z) of both stored views of every record, by the model's encoder in eval mode."""
-
-    from .model import tool_input
-
-    model.eval()
-    out = []
-    with torch.no_grad():
-        for s in range(0, len(arrays["label"]), batch):
-            rgb = torch.as_tensor(arrays["tool_rgb"][s:s + batch])
-            sil = torch.as_tensor(arrays["tool_sil"][s:s + batch])
-            z = [model.encode_tool(tool_input(rgb[:, v], sil[:, v])) for v in range(2)]
-            out.append(torch.stack(z, dim=1).numpy())
-    return np.concatenate(out)
-
-
 def train(ctx: Context) -> dict[str, Any]:
 
     from physint_cli.artifacts import save_training_curves
@@ -168,7 +151,7 @@ def train(ctx: Context) -> dict[str, Any]:
     from physint_cli.training import fit
 
     from .hard import HardExamples
-    from .imagine import encoded_box
+    from .imagine import encode_views, latent_box
     from .model import jitter
 
     cfg = ctx.config.train
@@ -260,8 +243,9 @@ def train(ctx: Context) -> dict[str, Any]:
     summary["epochs"] = {k: r.epochs for k, r in results.items()}
     summary["seconds"] = {k: round(sum(h.get("seconds", 0) for h in r.history), 1) for k, r in results.items()}
     # where imagination may go (eval.latent_box): the box round each model's training latents
-    meta["latent_box"] = {which: [b.tolist() for b in encoded_box(net.eval(), train_arrays)]
-                          for which, net in (("driven", model), ("unaware", unaware))}
+    views_latents = {"driven": encode_views(model, train_arrays), "unaware": train_latents}
+    meta["latent_box"] = {which: [b.tolist() for b in latent_box(torch.as_tensor(z).flatten(0, 1))]
+                          for which, z in views_latents.items()}
     run.save_trained(model=model.state_dict(), unaware=unaware.state_dict(), meta={**meta, "summary": summary})
     for title, result, loss, metric in (
             ("1-reconstruction", results["recon"], "train L_recon (Eq. 4.2)", "val IoU"),
