@@ -47,8 +47,8 @@ class DataConfig:
     train: int = field_(4000, "training tasks, balanced over data.train_types and feasible / infeasible "
                               "(thesis: 16,000)", ge=2)
     val: int = field_(500, "validation tasks over data.eval_types (thesis: 2,500)", ge=2)
-    test: int = field_(1000, "test tasks over data.eval_types, the instances imagination is measured on (not "
-                             "in the thesis, which measured on its validation split)", ge=2)
+    test: int = field_(2500, "test tasks over data.eval_types, the instances imagination is measured on (not "
+                             "in the thesis, which measured on its validation split): 250 infeasible per type", ge=2)
     train_types: str = field_("ABCD", "scenario types in training (Table 4.A.1: E is held out)")
     eval_types: str = field_("ABCDE", "scenario types in the validation and test splits")
     task_size: int = field_(64, "task image side in pixels (thesis: 128)", ge=32)
@@ -109,7 +109,7 @@ class TrainConfig:
 @dataclass
 class EvalConfig:
     types: str = field_("ABCDE", "scenario types to imagine tools for")
-    instances: int = field_(100, "infeasible test instances per type, each warm-starting every imagination "
+    instances: int = field_(250, "infeasible test instances per type, each warm-starting every imagination "
                                  "process (thesis: 250)", ge=1)
     step: float = field_(0.01, "imagination learning rate eta (Eq. 4.5) and the random walk's step", gt=0.0)
     optimizer: Literal["adam", "sgd"] = field_("adam", "how imagination steps on the gradient: adam (each coordinate "
