@@ -190,7 +190,7 @@ def _add_body(spec: mujoco.MjSpec, body: Body, solref: list[float]) -> str:
         weld = spec.add_equality(name=name, type=mujoco.mjtEq.mjEQ_WELD, objtype=mujoco.mjtObj.mjOBJ_BODY,
                                  name1="world", name2=name, active=False)
         weld.solimp = FREEZE_SOLIMP
-    volumes = np.array([g.volume() for g in body.geoms])
+    volumes = np.array([g.volume() for g in body.geoms]) if body.mass is not None else None
     for i, geom in enumerate(body.geoms):
         if body.mass is not None:  # the body's mass, shared by volume
             share = volumes[i] / volumes.sum() if volumes.sum() > 0 else 1.0 / len(volumes)

@@ -83,6 +83,16 @@ def check_writable(directory: Path, what: str = "--out") -> Path:
 
 # -- schema -------------------------------------------------------------------------------------
 
+def add_up(stats: list[dict[str, Any]]) -> dict[str, Any]:
+    """The work units' numeric statistics summed key by key (what a method's ``summarize`` starts from)."""
+    total: dict[str, Any] = {}
+    for s in stats:
+        for k, v in s.items():
+            if isinstance(v, (int, float)) and not isinstance(v, bool):
+                total[k] = total.get(k, 0) + v
+    return total
+
+
 def schema_of(arrays: dict[str, np.ndarray]) -> dict[str, dict[str, Any]]:
     """``{field: {"dtype", "shape"}}`` with the per-record shape (without the leading axis)."""
     return {k: {"dtype": str(np.asarray(v).dtype), "shape": list(np.asarray(v).shape[1:])} for k, v in arrays.items()}

@@ -102,11 +102,9 @@ def generate(ctx: Context, unit: Unit) -> tuple[dict[str, np.ndarray], dict[str,
 
 
 def summarize(stats: list[dict[str, Any]]) -> dict[str, Any]:
-    total: dict[str, Any] = {}
-    for s in stats:
-        for k, v in s.items():
-            if isinstance(v, (int, float)):
-                total[k] = total.get(k, 0) + v
+    from physint_cli.datasets import add_up
+
+    total = add_up(stats)
     checked = total.get("sim_checked", 0)
     total["sim_agreement"] = total.get("sim_agreed", 0) / checked if checked else None
     total["records_per_cpu_second"] = total.get("records", 0) / max(total.get("seconds", 0.0), 1e-9)

@@ -1,0 +1,152 @@
+"""Evaluating a trained RELATE model (thesis Section 5.4, Tables 5.4.1 and 5.A.1).
+
+On ``eval.samples`` generated scenes, with Gamma and with Gamma bypassed (theta = theta_hat) on the same
+model and the same latents:
+
+* FD-truth: the Fréchet distance to the real test frames on the features of the in-project network
+  that regresses the simulator's ground truth (``measure.TruthNet``; not FID, whose Inception weights
+  cannot be downloaded here). The distance between the real training and test frames is its floor;
+* physical plausibility (balls-in-bowl): the share of scenes with both balls seen, inside the bowl and
+  not interpenetrating, read off the images (``measure.Detector``; its rate on real test frames too);
+* Table 5.A.1's toggle score: the median distance in pixels from the pixel that changes most when an
+  object is left out to that object's pose (lower: each latent object is the thing drawn where it says).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from physint_cli.method import Context
+
+from . import measure
+from .checkpoint import dataset_header, image_grid, load_model, real_frames
+from .dataset import load_split
+from .model import present_mask
+
+# Table 5.4.1: FID on BallsInBowl per ablation arm; Table 5.A.1: median toggle distance (BallsInBowl)
+THESIS_FID = {"blockgan2d": 152.3, "no-residual": 133.9, "no-position": 154.8, "full": 81.9}
+THESIS_TOGGLE = {"blockgan2d": 98.0, "full": 26.0}
+FIELDS = ("frames", "pixels", "present", "bowl")
+TRUTH_FRAMES = 8000  # training frames the ground-truth regressor learns from
+
+
+def frame_truth(arrays: dict[str, np.ndarray], data_size: int, size: int, balls: bool) -> np.ndarray:
+    """Per frame the ground-truth targets of ``measure.truth_targets`` at the model's image size."""
+    t = arrays["frames"].shape[1]
+    pixels = arrays["pixels"].reshape(-1, *arrays["pixels"].shape[2:]) * size / data_size
+    present = np.repeat(arrays["present"], t, axis=0)
+    bowl = np.repeat(arrays["bowl"], t, axis=0) if balls else None
+    return measure.truth_targets(pixels, present, size, bowl)
+
+
+def truth_net(root: Path, frames: torch.Tensor, targets: np.ndarray, size: int, epochs: int, log) -> measure.TruthNet:
+    """The dataset's ground-truth regressor at ``size`` px, trained once (seed 0) and kept beside the dataset
+    (``features/truthnet-<size>px-<epochs>ep.pt``) so every arm is measured with the same features."""
+    path = root / "features" / f"truthnet-{size}px-{epochs}ep.pt"
+    if path.is_file():
+        net = measure.TruthNet(size, targets.shape[1])
+        net.load_state_dict(torch.load(path, map_location="cpu", weights_only=True))
+        return net.eval()
+    pick = torch.randperm(len(frames), generator=torch.Generator().manual_seed(0))[:TRUTH_FRAMES]
+    log(f"training the ground-truth regressor on {len(pick)} real frames for {epochs} epochs (FD-truth's features)")
+    net = measure.fit_truth_net(frames[pick], targets[pick.numpy()], epochs)
+    try:
+        path.parent.mkdir(exist_ok=True)
+        tmp = path.with_suffix(".tmp")
+        torch.save(net.state_dict(), tmp)
+        tmp.replace(path)
+    except OSError:  # a read-only dataset: measured all the same, trained again next time
+        pass
+    return net
+
+
+@torch.no_grad()
+def generate(generator, latents: dict[str, torch.Tensor], use_relation: bool, batch: int = 250) -> torch.Tensor:
+    out = []
+    n = len(latents["z0"])
+    for start in range(0, n, batch):
+        part = {k: v[start:start + batch] for k, v in latents.items()}
+        out.append(generator(part, use_relation=use_relation)[0])
+    return torch.cat(out)
+
+
+def to_uint8(images: torch.Tensor) -> np.ndarray:
+    return ((images.clamp(-1, 1) + 1) * 127.5).round().to(torch.uint8).permute(0, 2, 3, 1).numpy()
+
+
+def truth_error(net: measure.TruthNet, frames: torch.Tensor, targets: np.ndarray) -> float:
+    with torch.no_grad():
+        pred = net(frames.float() / 127.5 - 1).numpy()
+    return float(np.sqrt(((pred - targets) ** 2).mean()))
+
+
+def table(results: dict[str, Any], arm: str, balls: bool) -> str:
+    lines = ["| generated with | FD-truth (ours) | FID, thesis Table 5.4.1 | plausible % | toggle px (thesis at 128 px) |",
+             "|---|---|---|---|---|"]
+    for name, r in results["generated"].items():
+        thesis = THESIS_FID.get(arm, "-") if balls and name == "Gamma" else "-"
+        plaus = f"{100 * r['plausibility']['plausible']:.1f}" if r.get("plausibility") else "-"
+        toggle = f"{results['toggle_px']:.1f} ({THESIS_TOGGLE.get(arm, '-')})" if name == "Gamma" else "-"
+        lines.append(f"| {name} ({arm}) | {r['fd_truth']:.2f} | {thesis} | {plaus} | {toggle} |")
+    real = results["real"]
+    plaus = f"{100 * real['plausibility']['plausible']:.1f}" if real.get("plausibility") else "-"
+    lines.append(f"| real training frames (the floor) | {real['fd_truth']:.2f} | - | {plaus} | - |")
+    if "decomposition" in results:
+        d = results["decomposition"]
+        lines.append(f"\nbackground alone shows no ball: {100 * d['background_without_balls']:.1f} %; one object alone shows "
+                     f"one ball: {100 * d['one_object_one_ball']:.1f} %")
+    return "\n".join(lines) + "\n\nFD-truth: Fréchet distance on the in-project ground-truth regressor's features (not FID)\n"
+
+
+def evaluate(ctx: Context) -> dict[str, Any]:
+    import imageio.v3 as iio
+
+    cfg = ctx.config.eval
+    model, meta = load_model(ctx.trained().path, "cpu")
+    g = model.generator
+    root = Path(ctx.data or meta["dataset"])
+    scene, size = meta["scene"], int(meta["size"])
+    balls = scene == "balls-in-bowl"
+    data_size = int(dataset_header(root)["config"]["data"]["size"])
+    train, test = load_split(root, "train", FIELDS), load_split(root, "test", FIELDS)
+    train_frames, real_test = real_frames(train, size), real_frames(test, size)
+    net = truth_net(root, train_frames, frame_truth(train, data_size, size, balls), size, cfg.features_epochs, ctx.log)
+    test_features = measure.embed(net, real_test)
+    pick = torch.randperm(len(real_test), generator=torch.Generator().manual_seed(1))[:cfg.samples]
+    floor_pick = torch.randperm(len(train_frames), generator=torch.Generator().manual_seed(2))[:cfg.samples]
+    real_train = train_frames[floor_pick]
+    detector = measure.Detector(size) if balls else None
+    results: dict[str, Any] = {"real": {"fd_truth": measure.frechet(measure.embed(net, real_train), test_features),
+                                        "truth_rmse": truth_error(net, real_test[pick], frame_truth(test, data_size, size, balls)[pick.numpy()])}}
+    if detector:
+        results["real"]["plausibility"] = measure.plausibility(real_test[pick].permute(0, 2, 3, 1).numpy(), detector)
+    counts = meta.get("counts", [g.objects, g.objects])
+    gen = torch.Generator().manual_seed(ctx.seed)
+    present = present_mask(cfg.samples, counts[0], counts[1], g.objects, gen)
+    latents = g.sample(cfg.samples, present=present, generator=gen)
+    results["generated"] = {}
+    for name, use_relation in (("Gamma", True), ("Gamma bypassed", False)):
+        if not use_relation and g.relation is None:
+            continue
+        images = generate(g, latents, use_relation)
+        r: dict[str, Any] = {"fd_truth": measure.frechet(measure.embed(net, images), test_features)}
+        if detector:
+            r["plausibility"] = measure.plausibility(to_uint8(images), detector)
+        results["generated"][name] = r
+        grid = image_grid(images[:32])
+        iio.imwrite(ctx.output().artifact(f"samples_{name.replace(' ', '_').lower()}.png"), grid)
+        ctx.log(f"{name}: FD-truth {r['fd_truth']:.2f}" + (f", plausible {100 * r['plausibility']['plausible']:.1f} %"
+                                                             if detector else ""))
+    if detector:
+        results["decomposition"] = measure.decomposition(g, {k: v[:200] for k, v in latents.items()}, detector, to_uint8)
+    objects = cfg.toggle_objects or (g.objects if g.fixed_objects else 5)
+    results["toggle_px"] = measure.toggle_distance(g, cfg.toggle_samples, objects, seed=ctx.seed)
+    results["toggle_objects"] = objects
+    out = ctx.output()
+    out.artifact("table_5_4_1.md").write_text(table(results, model.arm, balls))
+    return {"arm": model.arm, "scene": scene, "samples": cfg.samples, "size": size, **results,
+            "thesis": {"fid": THESIS_FID, "toggle": THESIS_TOGGLE}, "dataset": str(root)}

@@ -1,0 +1,202 @@
+"""relate: the simulated scenes keep their physics, Gamma is a set function, the measurements read
+real frames right, training resumes exactly, and the CLI runs dataset -> train -> eval -> deploy."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+from conftest import call
+
+from physint_cli.plugins import get_plugins
+from physint_plugins.relate import measure
+from physint_plugins.relate import scenes as S
+from physint_plugins.relate.model import ABSENT, Generator, Relation, translate
+
+
+def make(scene, backend="mujoco"):
+    return get_plugins().backend(backend).make(scene)
+
+
+@pytest.mark.parametrize("backend", ["mujoco", "pybullet"])
+def test_balls_roll_and_stay_in_their_bowl(backend):
+    rng = np.random.default_rng(3)
+    bowl = S.sample_bowl(rng)
+    starts, velocities = S.sample_balls(rng, bowl, 2, speed=0.5)
+    scene, truth = S.balls_scene(bowl, starts, 32)
+    with make(scene, backend) as sim:
+        for name, v in zip(truth.names, velocities):
+            sim.set_velocity(name, v)
+        path = []
+        for _ in range(30):
+            sim.advance(0.05)
+            path.append([sim.get_pose(n)[0] for n in truth.names])
+    path = np.array(path)
+    assert S.inside_bowl(path[..., 0], path[..., 1], *bowl[:3]).all()
+    surface = S.bowl_height(path[..., 0], path[..., 1], *bowl[:3], bowl[3])
+    assert np.abs(path[..., 2] - surface - S.BALL_RADIUS).max() < 0.01  # on the surface, not through it
+    assert np.linalg.norm(path[-1] - path[0], axis=-1).max() > 0.01  # they rolled
+    gaps = np.linalg.norm(path[:, 0] - path[:, 1], axis=-1)
+    assert gaps.min() > 2 * S.BALL_RADIUS - 0.004  # they collide rather than pass through each other
+
+
+def test_clevr_objects_do_not_overlap_and_rest_where_placed():
+    scene, truth = S.clevr_scene(np.random.default_rng(5), 5, 32)
+    with make(scene) as sim:
+        before = np.array([sim.get_pose(n)[0] for n in truth.names])
+        sim.advance(0.5)
+        after = np.array([sim.get_pose(n)[0] for n in truth.names])
+    assert np.abs(after - before).max() < 0.003
+    for i in range(5):
+        for j in range(i + 1, 5):
+            reach = [h * (math.sqrt(2) if S.CLEVR_SHAPES[s] == "cube" else 1) for h, s in
+                     ((truth.sizes[i], truth.shapes[i]), (truth.sizes[j], truth.shapes[j]))]
+            assert np.linalg.norm(before[i, :2] - before[j, :2]) >= sum(reach)
+
+
+def test_shapestacks_come_through_the_registry_and_stand():
+    build = get_plugins().scene("stability", "ccs").build
+    scene, truth = S.stack_scene(build, seed=11, height=4, size=32, randomise=False)
+    assert len(truth.names) == 4 and scene.cameras[0].name == "front"
+    with make(scene) as sim:
+        before = np.array([sim.get_pose(n)[0] for n in truth.names])
+        sim.advance(1.0)
+        after = np.array([sim.get_pose(n)[0] for n in truth.names])
+    assert np.abs(after - before).max() < 0.01
+
+
+def test_gamma_is_order_invariant_and_ignores_absent_objects():
+    torch.manual_seed(0)
+    gamma = Relation(z_dim=4, z_bg=2)
+    theta, z, z0 = torch.rand(3, 4, 2) * 2 - 1, torch.rand(3, 4, 4), torch.rand(3, 2)
+    present = torch.ones(3, 4, dtype=torch.bool)
+    out = gamma(theta, z, z0, present)
+    perm = torch.tensor([2, 0, 3, 1])
+    assert torch.allclose(gamma(theta[:, perm], z[:, perm], z0, present), out[:, perm], atol=1e-6)
+    assert not torch.allclose(out, theta)  # it does correct the poses
+    # an absent object sends no message and is parked off the canvas
+    present[:, 3] = False
+    masked = gamma(theta, z, z0, present)
+    alone = gamma(theta[:, :3], z[:, :3], z0, present[:, :3])
+    assert torch.allclose(masked[:, :3], alone, atol=1e-6) and (masked[:, 3] == ABSENT).all()
+
+
+def test_translation_puts_a_window_at_its_pose():
+    grid = 16
+    window = torch.zeros(1, 1, grid, grid)
+    window[0, 0, grid // 2 - 1:grid // 2 + 1, grid // 2 - 1:grid // 2 + 1] = 1.0
+    for theta in ((0.5, -0.25), (-0.75, 0.5)):
+        moved = translate(window, torch.tensor([theta]))[0, 0]
+        v, u = np.unravel_index(moved.argmax().item(), moved.shape)
+        centre = [(t + 1) / 2 * grid for t in theta]  # theta in [-1, 1], x right, y down
+        assert abs(u + 0.5 - centre[0]) <= 1 and abs(v + 0.5 - centre[1]) <= 1
+
+
+def test_toggle_distance_is_small_where_objects_are_drawn_at_their_pose():
+    torch.manual_seed(0)
+    g = Generator(size=32, grid=8, window=2, z_obj=4, z_bg=2, channels=8, objects=3, fixed_objects=False,
+                  compose="max", relation=None)
+    near = measure.toggle_distance(g, 20, 3)
+    assert near < 32 / 4  # the renderer is local: leaving an object out changes the image round it
+
+
+def test_detector_reads_real_frames_and_catches_a_ball_outside_the_bowl():
+    rng = np.random.default_rng(8)
+    bowl = S.sample_bowl(rng)
+    starts, _ = S.sample_balls(rng, bowl, 2)
+    scene, truth = S.balls_scene(bowl, starts, 64)
+    camera = scene.cameras[0]
+    detector = measure.Detector(64)
+    with make(scene) as sim:
+        seen = detector(sim.render("top").rgb)
+        assert seen.plausible
+        truth_px = camera.project(np.array([sim.get_pose(n)[0] for n in truth.names]))
+        assert np.abs(seen.balls - truth_px).max() < 1.0
+        c, s = math.cos(bowl[0]), math.sin(bowl[0])
+        out = 1.15 * bowl[1] * np.array([c, s])  # past the rim along the major axis
+        sim.freeze(truth.names[0])
+        sim.set_pose(truth.names[0], (out[0], out[1], S.BALL_RADIUS))
+        assert not detector(sim.render("top").rgb).plausible
+
+
+def test_frechet_distance_is_zero_for_one_set_and_grows_with_a_shift():
+    x = np.random.default_rng(0).normal(size=(500, 8))
+    assert abs(measure.frechet(x, x)) < 1e-6
+    assert measure.frechet(x, x + 0.5) == pytest.approx(8 * 0.25, rel=0.05)
+
+
+@pytest.fixture(scope="module")
+def tiny_relate(tmp_path_factory):
+    out = tmp_path_factory.mktemp("relate")
+    code, stdout, err = call("pipeline", "relate", "--preset", "tiny", "--out", str(out), "--json")
+    assert code == 0, err
+    return out, json.loads(stdout)
+
+
+def test_pipeline_generates_measures_and_deploys(tiny_relate):
+    out, result = tiny_relate
+    assert result["dataset"]["stats"]["left_bowl"] == 0
+    ev = result["eval"]["metrics"]
+    assert set(ev["generated"]) == {"Gamma", "Gamma bypassed"}
+    assert ev["real"]["plausibility"]["plausible"] >= 0.9  # real test frames are plausible (balls 1.6 px wide at 16 px)
+    for r in ev["generated"].values():
+        assert r["fd_truth"] > ev["real"]["fd_truth"] >= 0
+    assert (out / "dataset" / "features").is_dir()  # the regressor is kept beside the dataset
+    assert set(ev["decomposition"]) == {"background_without_balls", "one_object_one_ball"}
+    assert all(0 <= v <= 1 for v in ev["decomposition"].values())
+    for name in ("samples.png", "components.png", "ood.png", "editing.png", "deploy.rrd"):
+        assert (out / "deploy" / "artifacts" / name).stat().st_size > 0
+
+
+def test_training_resumes_where_it_stopped(tiny_relate, tmp_path):
+    out, _ = tiny_relate
+    data = str(out / "dataset")
+    common = ("--preset", "tiny", "--data", data, "--set", "train.checkpoint_every=5")
+    code, _, err = call("train", "relate", *common, "--set", "train.iterations=10", "--out", str(tmp_path / "straight"))
+    assert code == 0, err
+    code, _, err = call("train", "relate", *common, "--set", "train.iterations=5", "--out", str(tmp_path / "halves"))
+    assert code == 0, err
+    code, _, err = call("train", "relate", *common, "--set", "train.iterations=10", "--resume", "--run",
+                        str(tmp_path / "halves"))
+    assert code == 0, err
+    a = torch.load(tmp_path / "straight" / "checkpoints" / "best.pt", weights_only=False)["model"]
+    b = torch.load(tmp_path / "halves" / "checkpoints" / "best.pt", weights_only=False)["model"]
+    assert all(torch.equal(a[k], b[k]) for k in a)
+
+
+@pytest.mark.parametrize("args, words", [
+    (("dataset", "relate", "--preset", "tiny", "--scene", "shapestacks", "--set", "data.min_objects=1"), "at least 2"),
+    (("dataset", "relate", "--preset", "tiny", "--set", "data.min_objects=4", "--set", "data.max_objects=3"), "must not exceed"),
+    (("dataset", "relate", "--preset", "tiny", "--scene", "kitchen"), "kitchen"),
+    (("train", "relate", "--preset", "tiny", "--set", "train.arm=gan"), "train.arm"),
+])
+def test_bad_input_is_one_line_and_exit_2(args, words, tmp_path):
+    code, _, err = call(*args, "--out", str(tmp_path / "x"))
+    assert code == 2 and words in err and "Traceback" not in err
+
+
+def test_bad_run_or_task_is_one_line_and_exit_2(tiny_relate, tmp_path):
+    out, _ = tiny_relate
+    code, _, err = call("deploy", "relate", "--run", str(out / "train"), "--task", "dance", "--out", str(tmp_path / "d"))
+    assert code == 2 and "sample or edit" in err
+    code, _, err = call("train", "relate", "--preset", "tiny", "--data", str(out / "dataset"), "--set", "train.size=24",
+                        "--out", str(tmp_path / "t"))
+    assert code == 2 and "train.grid" in err
+
+
+@pytest.mark.parametrize("backend", ["pybullet", "robosuite"])
+def test_dataset_on_the_other_backends(backend, tmp_path):
+    from physint_plugins.relate.dataset import load_split
+
+    code, stdout, err = call("dataset", "relate", "--preset", "tiny", "--backend", backend, "--set", "data.train=2",
+                             "--set", "data.test=1", "--out", str(tmp_path / "d"), "--json")
+    assert code == 0, err
+    assert json.loads(stdout)["stats"]["left_bowl"] == 0
+    arrays = load_split(tmp_path / "d", "train", ("frames", "pixels", "present"))
+    assert arrays["frames"].shape == (2, 8, 32, 32, 3) and arrays["present"].all()
+    inside = (arrays["pixels"] >= 0) & (arrays["pixels"] < 32)
+    assert inside.all()  # the balls stay in the camera's view
+    assert arrays["frames"].std() > 10  # something is drawn
