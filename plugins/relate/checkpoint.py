@@ -45,8 +45,13 @@ def sample_grid(model: Relate, n: int = 16, seed: int = 0) -> np.ndarray:
     return image_grid(images)
 
 
+def to_uint8(images: torch.Tensor) -> np.ndarray:
+    """Generated images (N, 3, H, W) in [-1, 1] as uint8 (N, H, W, 3)."""
+    return ((images.clamp(-1, 1) + 1) * 127.5).round().to(torch.uint8).permute(0, 2, 3, 1).cpu().numpy()
+
+
 def image_grid(images: torch.Tensor, columns: int = 8) -> np.ndarray:
-    pics = ((images.clamp(-1, 1) + 1) * 127.5).round().to(torch.uint8).permute(0, 2, 3, 1).cpu().numpy()
+    pics = to_uint8(images)
     rows = -(-len(pics) // columns)
     pad = np.zeros((rows * columns - len(pics), *pics.shape[1:]), np.uint8)
     pics = np.concatenate([pics, pad])

@@ -23,7 +23,7 @@ import torch
 from physint_cli.method import Context
 
 from . import measure
-from .checkpoint import dataset_header, image_grid, load_model, real_frames
+from .checkpoint import dataset_header, image_grid, load_model, real_frames, to_uint8
 from .dataset import load_split
 from .model import present_mask
 
@@ -72,10 +72,6 @@ def generate(generator, latents: dict[str, torch.Tensor], use_relation: bool, ba
         part = {k: v[start:start + batch] for k, v in latents.items()}
         out.append(generator(part, use_relation=use_relation)[0])
     return torch.cat(out)
-
-
-def to_uint8(images: torch.Tensor) -> np.ndarray:
-    return ((images.clamp(-1, 1) + 1) * 127.5).round().to(torch.uint8).permute(0, 2, 3, 1).numpy()
 
 
 def truth_error(net: measure.TruthNet, frames: torch.Tensor, targets: np.ndarray) -> float:
@@ -142,7 +138,7 @@ def evaluate(ctx: Context) -> dict[str, Any]:
         ctx.log(f"{name}: FD-truth {r['fd_truth']:.2f}" + (f", plausible {100 * r['plausibility']['plausible']:.1f} %"
                                                              if detector else ""))
     if detector:
-        results["decomposition"] = measure.decomposition(g, {k: v[:200] for k, v in latents.items()}, detector, to_uint8)
+        results["decomposition"] = measure.decomposition(g, {k: v[:200] for k, v in latents.items()}, detector)
     objects = cfg.toggle_objects or (g.objects if g.fixed_objects else 5)
     results["toggle_px"] = measure.toggle_distance(g, cfg.toggle_samples, objects, seed=ctx.seed)
     results["toggle_objects"] = objects

@@ -25,6 +25,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from . import scenes as S
+from .checkpoint import to_uint8
 
 HEAT = 8  # side of the ground truth's heat map of object centres
 
@@ -96,7 +97,7 @@ def plausibility(images: np.ndarray, detector: Detector) -> dict[str, float]:
 
 
 @torch.no_grad()
-def decomposition(generator, latents: dict[str, torch.Tensor], detector: Detector, to_uint8) -> dict[str, float]:
+def decomposition(generator, latents: dict[str, torch.Tensor], detector: Detector) -> dict[str, float]:
     """Whether the objects are drawn by the object latents (Fig. 5.4.1's component-wise renders): the share
     of background-only renders that show no ball, and of one-object renders that show exactly one."""
     n, k = latents["present"].shape
