@@ -14,7 +14,7 @@ from conftest import call
 from physint_cli.plugins import get_plugins
 from physint_plugins.relate import measure
 from physint_plugins.relate import scenes as S
-from physint_plugins.relate.model import ABSENT, Generator, Relation, translate
+from physint_plugins.relate.model import ABSENT, Dynamics, Generator, Relation, Stacking, translate
 
 
 def make(scene, backend="mujoco"):
@@ -84,6 +84,44 @@ def test_gamma_is_order_invariant_and_ignores_absent_objects():
     assert torch.allclose(masked[:, :3], alone, atol=1e-6) and (masked[:, 3] == ABSENT).all()
 
 
+def test_dynamics_roll_poses_forward_from_interactions():
+    torch.manual_seed(0)
+    gamma = Dynamics(z_dim=3, z_bg=2, max_speed=0.1)
+    theta, z, z0 = torch.rand(2, 3, 2) * 1.6 - 0.8, torch.rand(2, 3, 3), torch.rand(2, 2)
+    present = torch.ones(2, 3, dtype=torch.bool)
+    path = gamma(theta, z, z0, present, steps=6)
+    assert path.shape == (2, 6, 3, 2)
+    steps = (path[:, 1:] - path[:, :-1]).abs()
+    assert (steps <= 0.1 + 1e-6).all() and (steps > 0).any()  # theta(t+1) = theta(t) + v(t+1), |v| bounded
+    perm = torch.tensor([1, 2, 0])  # any order
+    assert torch.allclose(gamma(theta[:, perm], z[:, perm], z0, present, 6), path[:, :, perm], atol=1e-6)
+    # object 1's way depends on where object 2 is (h_k of Eq. 5.4); an absent object stays parked and sends nothing
+    moved = theta.clone()
+    moved[:, 2] += 0.3
+    assert not torch.allclose(gamma(moved, z, z0, present, 6)[:, 1:, 1], path[:, 1:, 1])
+    present[:, 2] = False
+    parked = gamma(theta, z, z0, present, 6)
+    assert (parked[:, :, 2] == ABSENT).all()
+    assert torch.allclose(parked[:, :, :2], gamma(theta[:, :2], z[:, :2], z0, present[:, :2], 6), atol=1e-6)
+
+
+def test_ordered_gamma_stacks_each_block_on_the_one_below():
+    torch.manual_seed(0)
+    gamma = Stacking(z_dim=4, z_bg=2)
+    theta_hat, z, z0 = torch.rand(5, 6, 2) * 1.2 - 0.6, torch.rand(5, 6, 4), torch.rand(5, 2)
+    present = torch.arange(6)[None] < torch.tensor([[1], [2], [4], [6], [3]])  # towers of 1 to 6 blocks
+    theta = gamma(theta_hat, z, z0, present)
+    assert (theta[:, 0] - theta_hat[:, 0]).abs().max() <= 0.5  # the base: theta_hat_1 + 0.5 f_0
+    for tower, height in zip(theta, present.sum(1)):
+        steps = tower[1:height] - tower[:height - 1]
+        assert (steps[:, 1] <= -0.1).all() and (steps[:, 1] >= -0.4).all()  # above (y down), by 0.1-0.4
+        assert (steps[:, 0].abs() <= 0.2).all() and (tower[height:] == ABSENT).all()
+    # only the blocks below matter: the top block's latent does not move the others
+    z2 = z.clone()
+    z2[:, 5] = torch.rand(5, 4)
+    assert torch.allclose(gamma(theta_hat, z2, z0, present), theta)
+
+
 def test_translation_puts_a_window_at_its_pose():
     grid = 16
     window = torch.zeros(1, 1, grid, grid)
@@ -93,6 +131,25 @@ def test_translation_puts_a_window_at_its_pose():
         v, u = np.unravel_index(moved.argmax().item(), moved.shape)
         centre = [(t + 1) / 2 * grid for t in theta]  # theta in [-1, 1], x right, y down
         assert abs(u + 0.5 - centre[0]) <= 1 and abs(v + 0.5 - centre[1]) <= 1
+    # the scale-augmented model's H'_k (Section 5.A.2): twice the window covers about four times the area
+    wide = translate(window, torch.tensor([[0.0, 0.0]]), torch.tensor([2.0]))[0, 0]
+    assert wide.sum() / window.sum() == pytest.approx(4.0, rel=0.3) and wide[grid // 2, grid // 2] > 0.5
+
+
+def test_scale_augmented_model_trains_and_varies_object_size(tiny_relate, tmp_path):
+    out, _ = tiny_relate
+    code, _, err = call("train", "relate", "--preset", "tiny", "--data", str(out / "dataset"), "--set", "train.scale=true",
+                        "--out", str(tmp_path / "s"))
+    assert code == 0, err
+    from physint_plugins.relate.checkpoint import load_model
+
+    model, meta = load_model(tmp_path / "s", "cpu")
+    g = model.generator
+    assert meta["kwargs"]["scale"] and g.scale is not None
+    latents = g.sample(16, generator=torch.Generator().manual_seed(0))
+    theta = g.still_poses(latents)
+    sizes = 1 + g.scale(torch.cat([latents["z0"][:, None].expand(-1, g.objects, -1), theta, latents["z"]], dim=2))
+    assert sizes.std() > 0  # each object gets its own H'_k
 
 
 def test_toggle_distance_is_small_where_objects_are_drawn_at_their_pose():
@@ -149,6 +206,48 @@ def test_pipeline_generates_measures_and_deploys(tiny_relate):
     assert all(0 <= v <= 1 for v in ev["decomposition"].values())
     for name in ("samples.png", "components.png", "ood.png", "editing.png", "deploy.rrd"):
         assert (out / "deploy" / "artifacts" / name).stat().st_size > 0
+
+
+def test_video_pipeline_trains_clips_measures_fvd_truth_and_deploys(tmp_path):
+    out = tmp_path / "video"
+    code, stdout, err = call("pipeline", "relate", "--preset", "tiny", "--set", "train.variant=video", "--out", str(out),
+                             "--json")
+    assert code == 0, err
+    ev = json.loads(stdout)["eval"]["metrics"]
+    assert ev["variant"] == "video" and set(ev["generated"]) == {"Gamma", "Gamma bypassed (still)"}
+    assert ev["real"]["ball_speed_px"] > 0  # the real balls roll
+    assert not ev["generated"]["Gamma bypassed (still)"]["ball_speed_px"] > 0  # still clips do not move (or show no ball)
+    assert ev["time_shuffled"]["fvd_truth"] >= 0 and ev["real"]["fvd_truth"] >= 0
+    for name in ("clips.mp4", "ood_clips.mp4", "samples.png", "deploy.rrd"):
+        assert (out / "deploy" / "artifacts" / name).stat().st_size > 0
+    # clips come from sequences: a video model on still images, or without Gamma, exits 2
+    code, _, err = call("train", "relate", "--preset", "tiny", "--data", str(out / "dataset"), "--set", "train.variant=video",
+                        "--set", "train.arm=blockgan2d", "--out", str(tmp_path / "b"))
+    assert code == 2 and "Gamma" in err
+    code, _, err = call("train", "relate", "--preset", "tiny", "--data", str(out / "dataset"), "--set", "train.variant=video",
+                        "--set", "train.clip=9", "--out", str(tmp_path / "c"))
+    assert code == 2 and "train.clip" in err
+
+
+def test_ordered_variant_trains_on_towers_only(tiny_relate, tmp_path):
+    out, _ = tiny_relate
+    code, _, err = call("train", "relate", "--preset", "tiny", "--data", str(out / "dataset"), "--set", "train.variant=ordered",
+                        "--out", str(tmp_path / "o"))
+    assert code == 2 and "shapestacks" in err  # balls in a bowl are no tower
+    code, _, err = call("pipeline", "relate", "--preset", "tiny", "--scene", "shapestacks", "--set", "train.variant=ordered",
+                        "--set", "data.train=4", "--set", "data.test=2", "--out", str(tmp_path / "stacks"))
+    assert code == 0, err
+    assert (tmp_path / "stacks" / "deploy" / "artifacts" / "ood.png").stat().st_size > 0
+
+
+def test_resume_refuses_another_model(tiny_relate, tmp_path):
+    out, _ = tiny_relate
+    common = ("--preset", "tiny", "--data", str(out / "dataset"), "--set", "train.checkpoint_every=5")
+    code, _, err = call("train", "relate", *common, "--set", "train.iterations=5", "--out", str(tmp_path / "r"))
+    assert code == 0, err
+    code, _, err = call("train", "relate", *common, "--set", "train.iterations=10", "--set", "train.channels=12",
+                        "--resume", "--run", str(tmp_path / "r"))
+    assert code == 2 and "another model" in err and "Traceback" not in err
 
 
 def test_training_resumes_where_it_stopped(tiny_relate, tmp_path):

@@ -40,8 +40,12 @@ def to_unit(images: torch.Tensor) -> torch.Tensor:
 def sample_grid(model: Relate, n: int = 16, seed: int = 0) -> np.ndarray:
     """An image grid (uint8 HxWx3) of ``n`` generated scenes with all objects present."""
     g = model.generator
+    latents = g.sample(n, generator=torch.Generator().manual_seed(seed))
     with torch.no_grad():
-        images, _ = g(g.sample(n, generator=torch.Generator().manual_seed(seed)))
+        if g.video:  # a clip per row: the first n // 8 scenes over 8 frames, every other frame
+            clips, _ = g({k: v[:max(1, n // 8)] for k, v in latents.items()}, frames=16)
+            return image_grid(clips[:, ::2].flatten(0, 1))
+        images, _ = g(latents)
     return image_grid(images)
 
 

@@ -10,6 +10,8 @@
 * ``editing.png``: rows of one scene edited: the background swapped, one object's appearance changed,
   one object moved (``deploy.move``, 'K:DX,DY');
 * ``move.mp4`` (or .gif): the moved object sliding along its way, frame by frame;
+* video models: ``clips.mp4`` (four generated clips of ``deploy.frames`` frames side by side) and
+  ``ood_clips.mp4`` (clips with more balls than trained);
 * ``deploy.rrd``: the same images, for ``rerun``.
 """
 
@@ -63,8 +65,9 @@ def deploy(ctx: Context) -> dict[str, Any]:
     gen = torch.Generator().manual_seed(ctx.seed)
     n = cfg.samples
     latents = g.sample(n, generator=gen)
-    with_gamma, theta = g(latents)
-    without, _ = g(latents, use_relation=False)
+    theta = g.still_poses(latents)  # the video model's first frame
+    with_gamma, _ = g(latents, theta=theta)
+    without, _ = g(latents, theta=g.still_poses(latents, use_relation=False))
     images: dict[str, np.ndarray] = {}
     shown = min(n, 8)
     extra = cfg.objects or objects + 2
@@ -80,7 +83,8 @@ def deploy(ctx: Context) -> dict[str, Any]:
             alone.append(g(part, keep=keep, theta=theta[:shown])[0])
         images["components"] = rows(*alone)
         # more objects than trained (out of distribution)
-        images["ood"] = rows(g(g.sample(shown, objects=extra, generator=gen))[0])
+        more = g.sample(shown, objects=extra, generator=gen)
+        images["ood"] = rows(g(more, theta=g.still_poses(more))[0])
     # editing one scene (Fig. 5.4.4): background swapped, object k's appearance changed, object k moved
     k, (dx, dy) = move
     base = {key: v[:1].repeat(shown, *[1] * (v.dim() - 1)) for key, v in latents.items()}
@@ -100,12 +104,27 @@ def deploy(ctx: Context) -> dict[str, Any]:
     clip = g({key: v[:1].repeat(24, *[1] * (v.dim() - 1)) for key, v in latents.items()}, theta=frames_theta)[0]
     frames = [np.kron(f, np.ones((4, 4, 1), np.uint8)) for f in to_uint8(clip)]  # 4x larger
     movie = save_movie(out.artifact("move"), frames, fps=12)
+    videos = []
+    if g.video and task == "sample":  # generated clips (Fig. 5.4.6), side by side, and OOD clips with more balls
+        for name, part in (("clips", {key: v[:4] for key, v in latents.items()}),
+                           ("ood_clips", g.sample(4, objects=extra, generator=gen))):
+            pics = to_uint8(g(part, frames=cfg.frames)[0].flatten(0, 1))
+            clips = pics.reshape(len(part["z0"]), cfg.frames, *pics.shape[1:])
+            video = [np.kron(np.concatenate(list(clips[:, t]), axis=1), np.ones((4, 4, 1), np.uint8))
+                     for t in range(cfg.frames)]
+            videos.append((name, video))
+            save_movie(out.artifact(name), video, fps=12)
     with Recording(out.artifact("deploy.rrd"), "physint relate deploy") as rec:
         for name, picture in images.items():
             rec.image(name, picture)
         for t, f in enumerate(frames):
             rec.time(step=t)
             rec.image("move", f)
-    ctx.log(f"wrote {', '.join(images)} and {movie.name}: object {k} moved by ({dx}, {dy})")
+        for name, video in videos:
+            for t, f in enumerate(video):
+                rec.time(step=t)
+                rec.image(name, f)
+    ctx.log(f"wrote {', '.join([*images, *(name for name, _ in videos)])} and {movie.name}: object {k} moved by "
+            f"({dx}, {dy})")
     return {"task": task, "arm": model.arm, "scene": meta["scene"], "samples": n, "objects": objects,
             "ood_objects": extra, "moved": {"object": k, "by": [dx, dy]}, "movie": movie.name}

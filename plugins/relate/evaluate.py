@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from physint_cli.errors import BadInput
 from physint_cli.method import Context
 
 from . import measure
@@ -46,14 +47,22 @@ def frame_truth(arrays: dict[str, np.ndarray], data_size: int, size: int, balls:
 def truth_net(root: Path, frames: torch.Tensor, targets: np.ndarray, size: int, epochs: int, log) -> measure.TruthNet:
     """The dataset's ground-truth regressor at ``size`` px, trained once (seed 0) and kept beside the dataset
     (``features/truthnet-<size>px-<epochs>ep.pt``) so every arm is measured with the same features."""
-    path = root / "features" / f"truthnet-{size}px-{epochs}ep.pt"
+    return cached_truth_net(root / "features" / f"truthnet-{size}px-{epochs}ep.pt", frames, targets, epochs, log)
+
+
+def cached_truth_net(path: Path, images: torch.Tensor, targets: np.ndarray, epochs: int, log,
+                     what: str = "real frames") -> measure.TruthNet:
+    """A ground-truth regressor on uint8 images (N, C, s, s), loaded from ``path`` or trained (seed 0) and kept there."""
     if path.is_file():
-        net = measure.TruthNet(size, targets.shape[1])
-        net.load_state_dict(torch.load(path, map_location="cpu", weights_only=True))
-        return net.eval()
-    pick = torch.randperm(len(frames), generator=torch.Generator().manual_seed(0))[:TRUTH_FRAMES]
-    log(f"training the ground-truth regressor on {len(pick)} real frames for {epochs} epochs (FD-truth's features)")
-    net = measure.fit_truth_net(frames[pick], targets[pick.numpy()], epochs)
+        net = measure.TruthNet(images.shape[-1], targets.shape[1], channels=images.shape[1])
+        try:
+            net.load_state_dict(torch.load(path, map_location="cpu", weights_only=True))
+            return net.eval()
+        except (RuntimeError, OSError, EOFError, ValueError) as err:
+            log(f"{path} is unreadable or of another network ({str(err).splitlines()[0][:80]}): training it again")
+    pick = torch.randperm(len(images), generator=torch.Generator().manual_seed(0))[:TRUTH_FRAMES]
+    log(f"training the ground-truth regressor on {len(pick)} {what} for {epochs} epochs (the distance's features)")
+    net = measure.fit_truth_net(images[pick], targets[pick.numpy()], epochs)
     try:
         path.parent.mkdir(exist_ok=True)
         tmp = path.with_suffix(".tmp")
@@ -98,6 +107,115 @@ def table(results: dict[str, Any], arm: str, balls: bool) -> str:
     return "\n".join(lines) + "\n\nFD-truth: Fréchet distance on the in-project ground-truth regressor's features (not FID)\n"
 
 
+# -- the video model (Section 5.4.3): FVD-truth beside the time-shuffled baseline ---------------------------------
+
+THESIS_FVD = {"relate": 556, "time-shuffled training sequences": 920}  # BallsInBowl, Section 5.4.3
+
+
+def clip_windows(sequences: torch.Tensor, frames: int) -> tuple[torch.Tensor, np.ndarray]:
+    """Every window of ``frames`` consecutive frames of every sequence (N, F, 3, s, s): the clips (M, 3 frames,
+    s, s) and their (sequence, start) pairs."""
+    n, f = sequences.shape[:2]
+    pairs = np.array([(i, t) for i in range(n) for t in range(f - frames + 1)])
+    index = torch.from_numpy(pairs[:, 0, None] * f + pairs[:, 1, None] + np.arange(frames))
+    return sequences.flatten(0, 1)[index].flatten(1, 2), pairs
+
+
+def clip_truth(arrays: dict[str, np.ndarray], pairs: np.ndarray, frames: int, data_size: int) -> np.ndarray:
+    """Per clip: every ball's position in every frame ([-1, 1]) and the bowl's (cos 2phi, sin 2phi, b/a)."""
+    t = pairs[:, 1, None] + np.arange(frames)
+    pixels = arrays["pixels"][pairs[:, 0, None], t] / data_size * 2 - 1  # (M, frames, K, 2)
+    bowl = arrays["bowl"][pairs[:, 0]]
+    shape = np.stack([np.cos(2 * bowl[:, 0]), np.sin(2 * bowl[:, 0]), bowl[:, 2] / bowl[:, 1]], axis=1)
+    return np.concatenate([pixels.reshape(len(pairs), -1), shape], axis=1).astype(np.float32)
+
+
+def ball_speed(clips: np.ndarray, detector: measure.Detector) -> float:
+    """Mean distance (px) a detected ball moves between two frames of uint8 clips (N, T, H, W, 3)."""
+    steps = []
+    for clip in clips:
+        centres = np.stack([detector(frame).balls for frame in clip])  # (T, K, 2), nan where unseen
+        d = np.linalg.norm(np.diff(centres, axis=0), axis=-1)
+        steps.append(d[~np.isnan(d)])
+    steps = np.concatenate(steps)
+    return float(steps.mean()) if len(steps) else float("nan")
+
+
+@torch.no_grad()
+def generate_clips(generator, latents: dict[str, torch.Tensor], frames: int, use_relation: bool,
+                   batch: int = 50) -> torch.Tensor:
+    out = []
+    for start in range(0, len(latents["z0"]), batch):
+        part = {k: v[start:start + batch] for k, v in latents.items()}
+        out.append(generator(part, use_relation=use_relation, frames=frames)[0])
+    return torch.cat(out)  # (N, frames, 3, H, W)
+
+
+def evaluate_video(ctx: Context, model, meta: dict[str, Any], root: Path) -> dict[str, Any]:
+    """FVD-truth (a Fréchet distance on the features of an in-project network that regresses the balls'
+    trajectories and the bowl from whole clips; not FVD) of generated clips, of still clips (Gamma bypassed),
+    of time-shuffled training clips (the thesis's baseline) and of real training clips (the floor), all
+    against the real test clips; with per-frame plausibility and how far the balls move per frame."""
+    import imageio.v3 as iio
+
+    cfg, g, size = ctx.config.eval, model.generator, int(meta["size"])
+    data_cfg = dataset_header(root)["config"]["data"]
+    frames, data_size = cfg.frames, int(data_cfg["size"])
+    if frames > int(data_cfg["frames"]):
+        raise BadInput(f"eval.frames ({frames}) exceeds the dataset's {data_cfg['frames']} frames per sequence")
+    train, test = load_split(root, "train", FIELDS), load_split(root, "test", FIELDS)
+    train_seq = real_frames(train, size).reshape(*train["frames"].shape[:2], 3, size, size)
+    test_seq = real_frames(test, size).reshape(*test["frames"].shape[:2], 3, size, size)
+    train_clips, train_pairs = clip_windows(train_seq, frames)
+    test_clips, test_pairs = clip_windows(test_seq, frames)
+    path = root / "features" / f"videonet-{size}px-{frames}f-{cfg.features_epochs}ep.pt"
+    targets = clip_truth(train, train_pairs, frames, data_size)
+    net = cached_truth_net(path, train_clips, targets, cfg.features_epochs, ctx.log, "real clips")
+    test_features = measure.embed(net, test_clips)
+    pick = torch.randperm(len(train_clips), generator=torch.Generator().manual_seed(2))[:cfg.clips]
+    real = train_clips[pick]
+    order = torch.argsort(torch.rand(len(real), frames, generator=torch.Generator().manual_seed(3)), dim=1)
+    shuffled = real.reshape(len(real), frames, 3, size, size)[torch.arange(len(real))[:, None], order].flatten(1, 2)
+    detector = measure.Detector(size)
+    as_clips = lambda x: to_uint8(x.reshape(-1, 3, size, size)).reshape(len(x), frames, size, size, 3)  # noqa: E731
+    results: dict[str, Any] = {
+        "real": {"fvd_truth": measure.frechet(measure.embed(net, real), test_features),
+                 "ball_speed_px": ball_speed(as_clips(test_clips[:cfg.clips].float() / 127.5 - 1), detector)},
+        "time_shuffled": {"fvd_truth": measure.frechet(measure.embed(net, shuffled), test_features)}}
+    gen = torch.Generator().manual_seed(ctx.seed)
+    latents = g.sample(cfg.clips, bg_range=cfg.bg_range, generator=gen)
+    results["generated"] = {}
+    for name, use_relation in (("Gamma", True), ("Gamma bypassed (still)", False)):
+        clips = generate_clips(g, latents, frames, use_relation)
+        pics = as_clips(clips.flatten(1, 2))
+        r = {"fvd_truth": measure.frechet(measure.embed(net, clips.flatten(1, 2)), test_features),
+             "plausibility": measure.plausibility(pics.reshape(-1, size, size, 3), detector),
+             "ball_speed_px": ball_speed(pics, detector)}
+        results["generated"][name] = r
+        ctx.log(f"{name}: FVD-truth {r['fvd_truth']:.2f}, plausible frames {100 * r['plausibility']['plausible']:.1f} %, "
+                f"balls move {r['ball_speed_px']:.2f} px per frame")
+        if use_relation:
+            iio.imwrite(ctx.output().artifact("clips.png"), image_grid(clips[:8, ::max(1, frames // 8)][:, :8].flatten(0, 1)))
+    ctx.log(f"time-shuffled training clips: FVD-truth {results['time_shuffled']['fvd_truth']:.2f}; real training clips "
+            f"(the floor): {results['real']['fvd_truth']:.2f}")
+    results["decomposition"] = measure.decomposition(g, {k: v[:200] for k, v in latents.items()}, detector)
+    lines = ["| clips | FVD-truth (ours) | FVD, thesis 5.4.3 | plausible frames % | ball speed px/frame |",
+             "|---|---|---|---|---|"]
+    for name, r in results["generated"].items():
+        thesis = THESIS_FVD["relate"] if name == "Gamma" else "-"
+        lines.append(f"| generated, {name} | {r['fvd_truth']:.2f} | {thesis} | {100 * r['plausibility']['plausible']:.1f} "
+                     f"| {r['ball_speed_px']:.2f} |")
+    lines.append(f"| time-shuffled training clips | {results['time_shuffled']['fvd_truth']:.2f} | "
+                 f"{THESIS_FVD['time-shuffled training sequences']} | - | - |")
+    lines.append(f"| real training clips (the floor) | {results['real']['fvd_truth']:.2f} | - | - | "
+                 f"{results['real']['ball_speed_px']:.2f} |")
+    ctx.output().artifact("table_fvd.md").write_text(
+        "\n".join(lines) + f"\n\n{frames}-frame clips at {size} px. FVD-truth: Fréchet distance on an in-project network "
+        "regressing the simulator's trajectories from clips (not FVD)\n")
+    return {"variant": "video", "arm": model.arm, "scene": meta["scene"], "clips": cfg.clips, "frames": frames,
+            "size": size, **results, "thesis": {"fvd": THESIS_FVD}, "dataset": str(root)}
+
+
 def evaluate(ctx: Context) -> dict[str, Any]:
     import imageio.v3 as iio
 
@@ -105,6 +223,8 @@ def evaluate(ctx: Context) -> dict[str, Any]:
     model, meta = load_model(ctx.trained().path, "cpu")
     g = model.generator
     root = Path(ctx.data or meta["dataset"])
+    if g.video:
+        return evaluate_video(ctx, model, meta, root)
     scene, size = meta["scene"], int(meta["size"])
     balls = scene == "balls-in-bowl"
     data_size = int(dataset_header(root)["config"]["data"]["size"])
@@ -123,7 +243,7 @@ def evaluate(ctx: Context) -> dict[str, Any]:
     counts = meta.get("counts", [g.objects, g.objects])
     gen = torch.Generator().manual_seed(ctx.seed)
     present = present_mask(cfg.samples, counts[0], counts[1], g.objects, gen)
-    latents = g.sample(cfg.samples, present=present, generator=gen)
+    latents = g.sample(cfg.samples, present=present, bg_range=cfg.bg_range, generator=gen)
     results["generated"] = {}
     for name, use_relation in (("Gamma", True), ("Gamma bypassed", False)):
         if not use_relation and g.relation is None:

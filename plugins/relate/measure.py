@@ -101,7 +101,7 @@ def decomposition(generator, latents: dict[str, torch.Tensor], detector: Detecto
     """Whether the objects are drawn by the object latents (Fig. 5.4.1's component-wise renders): the share
     of background-only renders that show no ball, and of one-object renders that show exactly one."""
     n, k = latents["present"].shape
-    theta = generator.poses(latents)
+    theta = generator.still_poses(latents)
     none = torch.zeros(n, k, dtype=torch.bool)
     background = to_uint8(generator(latents, keep=none, theta=theta)[0])
     single = []
@@ -136,9 +136,9 @@ class TruthNet(nn.Module):
 
     FEATURES = 128
 
-    def __init__(self, size: int, outputs: int, width: int = 32):
+    def __init__(self, size: int, outputs: int, width: int = 32, channels: int = 3):
         super().__init__()
-        layers, c = [], 3
+        layers, c = [], channels
         for i in range(4):
             layers += [nn.Conv2d(c, width * 2 ** min(i, 2), 3, stride=2, padding=1), nn.GroupNorm(8, width * 2 ** min(i, 2)),
                        nn.ReLU()]
@@ -159,7 +159,7 @@ def fit_truth_net(images: torch.Tensor, targets: np.ndarray, epochs: int, batch:
     arm's evaluation on one dataset uses the same features."""
     gen = torch.Generator().manual_seed(seed)
     torch.manual_seed(seed)
-    net = TruthNet(images.shape[-1], targets.shape[1])
+    net = TruthNet(images.shape[-1], targets.shape[1], channels=images.shape[1])
     opt = torch.optim.Adam(net.parameters(), lr=1e-3)
     y = torch.from_numpy(targets)
     for _ in range(epochs):
@@ -203,7 +203,7 @@ def toggle_distance(generator, scenes: int, objects: int, seed: int = 0, batch: 
     for start in range(0, scenes, batch):
         n = min(batch, scenes - start)
         latents = generator.sample(n, objects=objects, generator=gen)
-        full, theta = generator(latents)
+        full, theta = generator(latents, theta=generator.still_poses(latents))
         for i in range(objects):
             keep = torch.ones(n, objects, dtype=torch.bool)
             keep[:, i] = False

@@ -39,16 +39,33 @@ THESIS_SETTINGS = {  # Table 5.D.1 (N_f, N_b, beta1, composition, pose range) pe
 }
 
 
-def model_kwargs(cfg, scene: str, objects: int) -> dict[str, Any]:
-    """The network's constructor arguments: the config, with the thesis's per-scene values where it says 0 / -1."""
+LEAD = 4  # video: clips start at a random one of the first LEAD + 1 rolled-out frames (the released code: 20 - T)
+
+
+def model_kwargs(cfg, scene: str, objects: int, frames: int) -> dict[str, Any]:
+    """The network's constructor arguments: the config, with the thesis's per-scene values where it says 0 / -1.
+    ``frames``: the dataset's frames per record (a video model's clips come from sequences)."""
     thesis = THESIS_SETTINGS[scene]
+    if cfg.variant == "ordered" and scene != "shapestacks":
+        raise BadInput(f"train.variant=ordered stacks blocks (Eq. 5.3): it needs a shapestacks dataset, not {scene} "
+                       "(physint dataset relate --scene shapestacks)")
+    if cfg.variant == "video":
+        if frames < cfg.clip:
+            raise BadInput(f"train.variant=video needs sequences of at least train.clip ({cfg.clip}) frames; this "
+                           f"{scene} dataset has {frames} per record (make one with --scene balls-in-bowl)")
+        if cfg.arm == "blockgan2d":
+            raise BadInput("train.variant=video rolls the poses forward with Gamma: train.arm=blockgan2d has none "
+                           "(choose full, no-residual or no-position)")
     if cfg.size % cfg.grid or (cfg.size // cfg.grid) & (cfg.size // cfg.grid - 1):
         raise BadInput(f"train.size ({cfg.size}) must be the feature grid train.grid ({cfg.grid}) times a power of 2")
-    window = max(2, round((cfg.window or thesis["window"]) * cfg.grid))
+    share = cfg.window or thesis["window"]
+    window = max(2 - cfg.grid % 2, 2 * round((share * cfg.grid - cfg.grid % 2) / 2) + cfg.grid % 2)  # centred: grid - window even
     return {"arm": cfg.arm, "size": cfg.size, "grid": cfg.grid, "window": window,
             "z_obj": cfg.z_obj or thesis["z_obj"], "z_bg": cfg.z_bg or thesis["z_bg"], "channels": cfg.channels,
             "d_channels": cfg.d_channels, "objects": objects, "fixed_objects": thesis["fixed_objects"],
-            "compose": thesis["compose"], "pose_range": thesis["pose_range"]}
+            "compose": thesis["compose"], "pose_range": tuple(cfg.pose_scale * r for r in thesis["pose_range"]), "variant": cfg.variant,
+            "clip": cfg.clip if cfg.variant == "video" else 1, "max_speed": cfg.max_speed, "scale": cfg.scale,
+            "background_grid": cfg.background_grid or None}
 
 
 def one_object(present: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
@@ -78,13 +95,34 @@ class Trainer:
         present = present_mask(batch, *self.counts, g.objects, self.rng)
         return g.sample(batch, present=present, generator=self.rng)
 
+    def generate(self, latents) -> tuple[torch.Tensor, torch.Tensor]:
+        """Generated images (B, 3, H, W) and poses (B, K, 2); for the video model clips flattened to the
+        discriminator's (B, 3 T, H, W), each a random window of a rollout, and their poses (B, T, K, 2)."""
+        g, clip = self.model.generator, self.model.clip
+        if not g.video:
+            return g(latents)
+        rollout = g.poses(latents, frames=clip + LEAD)
+        start = torch.randint(LEAD + 1, (len(rollout),), generator=self.rng)
+        frames = start[:, None] + torch.arange(clip)
+        theta = rollout[torch.arange(len(rollout))[:, None], frames]  # (B, T, K, 2)
+        images, _ = g(latents, theta=theta)
+        return images.flatten(1, 2), theta
+
     def position_loss(self, latents, theta, through_generator: bool) -> torch.Tensor:
-        """||stopgrad(theta_k) - P(G(max(Psi_hat_k, Psi_0)))||^2 for one random present object k per scene."""
+        """||stopgrad(theta_k) - P(G(max(Psi_hat_k, Psi_0)))||^2 for one random present object k per scene. The
+        video model's P sees that object's first frame repeated over the clip, standing still (Section 5.3.3)."""
         g, d = self.model.generator, self.model.discriminator
+        if self.model.variant == "ordered":  # P reads the tower's base off the whole image (Section 5.A.1)
+            with torch.set_grad_enabled(through_generator and torch.is_grad_enabled()):
+                image, _ = g(latents, theta=theta)
+            return F.mse_loss(d.regress(image), theta.detach()[:, 0])
         keep = one_object(latents["present"], self.rng)
+        first = theta[:, 0] if theta.dim() == 4 else theta
         with torch.set_grad_enabled(through_generator and torch.is_grad_enabled()):
-            single, _ = g(latents, keep=keep, theta=theta)
-        target = theta.detach()[keep]  # (B, 2)
+            single, _ = g(latents, keep=keep, theta=first)
+        if self.model.clip > 1:
+            single = torch.cat([single, single.detach().repeat(1, self.model.clip - 1, 1, 1)], dim=1)
+        target = first.detach()[keep]  # (B, 2)
         return F.mse_loss(d.regress(single), target)
 
     def step(self, real: torch.Tensor) -> dict[str, float]:
@@ -93,7 +131,7 @@ class Trainer:
         # discriminator: GAN + style losses (Section 5.3.3), P on generated single objects
         latents = self.latents(len(real))
         with torch.no_grad():
-            fake, theta = g(latents)
+            fake, theta = self.generate(latents)
         logit_real, style_real = d(real)
         logit_fake, style_fake = d(fake)
         loss_d = bce(logit_real, 1.0) + bce(logit_fake, 0.0)
@@ -105,7 +143,7 @@ class Trainer:
         # generator: non-saturating GAN loss and the position loss through G
         for _ in range(cfg.g_steps):
             latents = self.latents(len(real))
-            fake, theta = g(latents)
+            fake, theta = self.generate(latents)
             logit, _ = d(fake)
             loss_g = bce(logit, 1.0)
             loss_pos = self.position_loss(latents, theta, through_generator=True) if use_position else torch.zeros(())
@@ -141,9 +179,12 @@ def train(ctx: Context) -> dict[str, Any]:
     scene, data_cfg = header["scene"], header["config"]["data"]
     slots = int(data_cfg["balls"] if scene == "balls-in-bowl" else data_cfg["max_objects"])
     counts = (slots, slots) if scene == "balls-in-bowl" else (int(data_cfg["min_objects"]), slots)
-    kwargs = model_kwargs(cfg, scene, slots)
+    frames_per_record = int(data_cfg["frames"]) if scene == "balls-in-bowl" else 1
+    kwargs = model_kwargs(cfg, scene, slots, frames_per_record)
     beta1 = cfg.beta1 if cfg.beta1 >= 0 else THESIS_SETTINGS[scene]["beta1"]
     real = real_frames(load_split(ctx.data, "train", ("frames",)), cfg.size)
+    clip = kwargs["clip"]
+    starts = torch.arange(len(real)).reshape(-1, frames_per_record)[:, :frames_per_record - clip + 1].flatten()
     torch.manual_seed(ctx.seed)
     model = Relate(**kwargs)
     trainer = Trainer(model, cfg, beta1, counts, ctx.seed)
@@ -151,15 +192,22 @@ def train(ctx: Context) -> dict[str, Any]:
     start = 0
     last = run.checkpoint("last")
     if ctx.resume and last.is_file():
-        start = trainer.load(load_checkpoint(last))
+        state = load_checkpoint(last)
+        if state.get("kwargs", kwargs) != kwargs:
+            raise BadInput(f"{last} was trained with another model ({state['kwargs']}); resume with its config or "
+                           "train into a new --out")
+        start = trainer.load(state)
         ctx.log(f"resuming at generator update {start} of {cfg.iterations}")
     meta = {"method": "relate", "model": MODEL, "kwargs": kwargs, "dataset": str(ctx.data), "scene": scene,
             "backend": header.get("backend"), "counts": list(counts), "size": cfg.size}
-    ctx.log(f"training RELATE ({cfg.arm}) on {len(real)} {scene} frames at {cfg.size} px for {cfg.iterations} updates")
+    what = f"{clip}-frame clips" if clip > 1 else "frames"
+    ctx.log(f"training RELATE ({cfg.variant}, {cfg.arm}) on {len(starts)} {scene} {what} at {cfg.size} px for "
+            f"{cfg.iterations} updates")
     t0, history = time.time(), []
     for iteration in range(start, cfg.iterations):
-        index = torch.randint(len(real), (cfg.batch_size,), generator=trainer.order)
-        losses = trainer.step(to_unit(real[index]))
+        first = starts[torch.randint(len(starts), (cfg.batch_size,), generator=trainer.order)]
+        batch = real[first[:, None] + torch.arange(clip)].flatten(1, 2)  # (B, 3 T, H, W); T = 1 for still frames
+        losses = trainer.step(to_unit(batch))
         done = iteration + 1
         if done % 25 == 0 or done == cfg.iterations:
             run.log_metrics(done, **losses)
@@ -167,7 +215,7 @@ def train(ctx: Context) -> dict[str, Any]:
         if done % cfg.samples_every == 0 or done == cfg.iterations:
             iio.imwrite(run.artifact(f"samples_{done:06d}.png"), sample_grid(model, seed=ctx.seed))
         if done % cfg.checkpoint_every == 0 or done == cfg.iterations:
-            save_checkpoint(last, **trainer.state(done))
+            save_checkpoint(last, **trainer.state(done), kwargs=kwargs, meta=meta)
             if done % (10 * cfg.checkpoint_every) == 0:
                 ctx.log(f"update {done}/{cfg.iterations}: " + ", ".join(f"{k} {v:.3f}" for k, v in losses.items()))
     seconds = time.time() - t0
