@@ -238,6 +238,9 @@ def test_ordered_variant_trains_on_towers_only(tiny_relate, tmp_path):
                         "--set", "data.train=4", "--set", "data.test=2", "--out", str(tmp_path / "stacks"))
     assert code == 0, err
     assert (tmp_path / "stacks" / "deploy" / "artifacts" / "ood.png").stat().st_size > 0
+    code, _, err = call("eval", "relate", "--run", str(out / "train"), "--data", str(tmp_path / "stacks" / "dataset"),
+                        "--out", str(tmp_path / "e"))
+    assert code == 2 and "trained on balls-in-bowl" in err  # a balls model is not measured on towers
 
 
 def test_resume_refuses_another_model(tiny_relate, tmp_path):
@@ -284,6 +287,9 @@ def test_bad_run_or_task_is_one_line_and_exit_2(tiny_relate, tmp_path):
     code, _, err = call("train", "relate", "--preset", "tiny", "--data", str(out / "dataset"), "--set", "train.size=24",
                         "--out", str(tmp_path / "t"))
     assert code == 2 and "train.grid" in err
+    code, _, err = call("train", "relate", "--preset", "tiny", "--data", str(out / "dataset"), "--set", "train.size=48",
+                        "--set", "train.grid=6", "--out", str(tmp_path / "t2"))
+    assert code == 2 and "4 times a power of 2" in err
 
 
 @pytest.mark.parametrize("backend", ["pybullet", "robosuite"])

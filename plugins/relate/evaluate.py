@@ -223,6 +223,10 @@ def evaluate(ctx: Context) -> dict[str, Any]:
     model, meta = load_model(ctx.trained().path, "cpu")
     g = model.generator
     root = Path(ctx.data or meta["dataset"])
+    data_scene = dataset_header(root)["scene"]
+    if data_scene != meta["scene"]:
+        raise BadInput(f"this model was trained on {meta['scene']} and {root} holds {data_scene}: pass --data with a "
+                       f"{meta['scene']} dataset")
     if g.video:
         return evaluate_video(ctx, model, meta, root)
     scene, size = meta["scene"], int(meta["size"])

@@ -58,6 +58,9 @@ def model_kwargs(cfg, scene: str, objects: int, frames: int) -> dict[str, Any]:
                            "(choose full, no-residual or no-position)")
     if cfg.size % cfg.grid or (cfg.size // cfg.grid) & (cfg.size // cfg.grid - 1):
         raise BadInput(f"train.size ({cfg.size}) must be the feature grid train.grid ({cfg.grid}) times a power of 2")
+    if cfg.size % 4 or (cfg.size // 4) & (cfg.size // 4 - 1):
+        raise BadInput(f"train.size ({cfg.size}) must be 4 times a power of 2 (16, 32, 64, 128, ...): the "
+                       "discriminator halves it down to 4x4")
     share = cfg.window or thesis["window"]
     window = max(2 - cfg.grid % 2, 2 * round((share * cfg.grid - cfg.grid % 2) / 2) + cfg.grid % 2)  # centred: grid - window even
     return {"arm": cfg.arm, "size": cfg.size, "grid": cfg.grid, "window": window,
