@@ -180,7 +180,8 @@ def evaluate_video(ctx: Context, model, meta: dict[str, Any], root: Path) -> dic
     as_clips = lambda x: to_uint8(x.reshape(-1, 3, size, size)).reshape(len(x), frames, size, size, 3)  # noqa: E731
     results: dict[str, Any] = {
         "real": {"fvd_truth": measure.frechet(measure.embed(net, real), test_features),
-                 "ball_speed_px": ball_speed(as_clips(test_clips[:cfg.clips].float() / 127.5 - 1), detector)},
+                 "ball_speed_px": ball_speed(test_clips[:cfg.clips].unflatten(1, (frames, 3)).permute(0, 1, 3, 4, 2).numpy(),
+                                             detector)},
         "time_shuffled": {"fvd_truth": measure.frechet(measure.embed(net, shuffled), test_features)}}
     gen = torch.Generator().manual_seed(ctx.seed)
     latents = g.sample(cfg.clips, bg_range=cfg.bg_range, generator=gen)

@@ -95,6 +95,14 @@ def mlp(sizes: list[int], last: nn.Module | None = None) -> nn.Sequential:
     return nn.Sequential(*layers)
 
 
+def pairwise_sum(pair: nn.Module, state: torch.Tensor, present: torch.Tensor) -> torch.Tensor:
+    """h_k = sum over the other present objects q of pair(state_k, state_q) (Eqs. 5.2, 5.4): (B, K, hidden)."""
+    b, k, _ = state.shape
+    pairs = torch.cat([state[:, :, None].expand(b, k, k, -1), state[:, None].expand(b, k, k, -1)], dim=3)
+    mask = present[:, None, :] & present[:, :, None] & ~torch.eye(k, dtype=torch.bool, device=state.device)
+    return (pair(pairs) * mask[..., None]).sum(dim=2)
+
+
 class Relation(nn.Module):
     """Gamma (Eqs. 5.1, 5.2): theta_k = theta_hat_k + 0.5 * zeta_k with zeta_k = f(theta_hat_k, z_k, z_0, h_k)
     and h_k = sum over the other present objects q of g(theta_hat_k, z_k, theta_hat_q, z_q): weights shared
@@ -110,12 +118,9 @@ class Relation(nn.Module):
 
     def forward(self, theta_hat: torch.Tensor, z: torch.Tensor, z0: torch.Tensor, present: torch.Tensor) -> torch.Tensor:
         """theta_hat: (B, K, 2), z: (B, K, N_f), z0: (B, N_b), present: (B, K) bool."""
-        b, k, _ = theta_hat.shape
         state = torch.cat([theta_hat, z], dim=2)  # (B, K, N_f + 2)
-        pairs = torch.cat([state[:, :, None].expand(b, k, k, -1), state[:, None].expand(b, k, k, -1)], dim=3)
-        mask = present[:, None, :] & present[:, :, None] & ~torch.eye(k, dtype=torch.bool, device=z.device)
-        h = (self.pair(pairs) * mask[..., None]).sum(dim=2)  # Eq. 5.2: sum over q != k
-        zeta = self.out(torch.cat([h, state, z0[:, None].expand(b, k, -1)], dim=2))
+        h = pairwise_sum(self.pair, state, present)  # Eq. 5.2: sum over q != k
+        zeta = self.out(torch.cat([h, state, z0[:, None].expand(*theta_hat.shape[:2], -1)], dim=2))
         theta = 0.5 * zeta + (theta_hat if self.residual else 0.0)  # Eq. 5.1
         return torch.where(present[..., None], theta, torch.full_like(theta, ABSENT))
 
@@ -144,15 +149,14 @@ class Dynamics(nn.Module):
         theta = self.start(theta_hat, z, z0, present)
         theta = torch.where(present[..., None], theta.clamp(-1.0, 1.0), theta)
         on = present[..., None].float()
-        velocities = self.max_speed * self.encode_velocity(torch.cat([z, theta.detach(), z0[:, None].expand(b, k, -1)], 2))
+        background = z0[:, None].expand(b, k, -1)
+        velocities = self.max_speed * self.encode_velocity(torch.cat([z, theta.detach(), background], 2))
         velocities = (velocities * on).reshape(b, k, self.past, 2)  # V_k(0): v(-2), v(-1), v(0)
-        mask = present[:, None, :] & present[:, :, None] & ~torch.eye(k, dtype=torch.bool, device=z.device)
         out = [theta]
         for _ in range(steps - 1):
             state = torch.cat([theta, z, velocities.flatten(2)], dim=2)
-            pairs = torch.cat([state[:, :, None].expand(b, k, k, -1), state[:, None].expand(b, k, k, -1)], dim=3)
-            h = (self.pair(pairs) * mask[..., None]).sum(dim=2)  # h_k^d(t), Eq. 5.4
-            v = self.max_speed * self.out(torch.cat([h, state, z0[:, None].expand(b, k, -1)], dim=2)) * on
+            h = pairwise_sum(self.pair, state, present)  # h_k^d(t), Eq. 5.4
+            v = self.max_speed * self.out(torch.cat([h, state, background], dim=2)) * on
             theta = theta + v  # theta_k(t+1) = theta_k(t) + v_k(t+1)
             velocities = torch.cat([velocities[:, :, 1:], v[:, :, None]], dim=2)
             out.append(theta)
@@ -294,7 +298,7 @@ class Generator(nn.Module):
         overrides the poses (editing). The video model renders clips (B, frames, 3, size, size) from
         trajectories (B, frames, K, 2), as does any ``theta`` with a time axis."""
         if theta is None:
-            theta = self.poses(latents, use_relation, frames) if self.video else self.poses(latents, use_relation)
+            theta = self.poses(latents, use_relation, frames)
         if theta.dim() == 4:  # a clip: every frame is a scene of the same latents at that frame's poses
             b, t = theta.shape[:2]
             per_frame = {key: value.repeat_interleave(t, dim=0) for key, value in latents.items()}
