@@ -29,15 +29,16 @@ def cpu_model() -> str:
     return platform.processor() or "unknown"
 
 
-def machine(device: str = "cpu") -> str:
+def machine(device: str = "cpu", precision: str | None = None) -> str:
     """The machine a benchmark's wall times belong to: CPU, cores, vector capability, and the precision
-    ``train.precision=auto`` trains in here (a 2-core CPU without native bf16 trains several times slower)."""
+    ``train.precision=auto`` trains in here (a 2-core CPU without native bf16 trains several times slower);
+    ``precision`` names it instead for a method that always trains in one precision."""
     import torch
 
     from physint_cli.training import resolve_precision
 
     return (f"{platform.node()}: {cpu_model()}, {os.cpu_count()} CPUs ({torch.backends.cpu.get_cpu_capability()}), "
-            f"training on {device} in {resolve_precision('auto', device)}")
+            f"training on {device} in {precision or resolve_precision('auto', device)}")
 
 
 def physint() -> list[str]:

@@ -75,7 +75,7 @@ def main(argv: list[str] | None = None) -> int:
                      if name in e["generated"] and "plausibility" in e["generated"][name]]
             if rates:
                 rows.append((f"  {arm}: plausible scenes, {name}", "-", spread([100 * r for r in rates]) + " %", "-"))
-    figures = {"machine": machine(), "dataset": manifest.get("stats", {}), "eval": results}
+    figures = {"machine": machine(precision="fp32"), "dataset": manifest.get("stats", {}), "eval": results}
     report(f"relate benchmark, preset {args.preset}, backend {args.backend}", rows, figures, steps, args.json)
     return 0
 

@@ -51,7 +51,9 @@ def resolve_precision(precision: str, device: str) -> str:
     cpu = torch.cpu
     native = getattr(cpu, "_is_amx_tile_supported", lambda: False)() or \
         getattr(cpu, "_is_avx512_bf16_supported", lambda: False)()
-    return "bf16" if native else "fp32"
+    # torch held to AVX2 or below (ATEN_CPU_CAPABILITY=avx2, as on an AVX2-only CPU) runs no AVX512 kernels
+    held_below_avx512 = not torch.backends.cpu.get_cpu_capability().startswith("AVX512")
+    return "bf16" if native and not held_below_avx512 else "fp32"
 
 
 def autocast(device: str, precision: str):
@@ -276,7 +278,8 @@ def fit(model, train_set, val_set, *, run, epochs: int, batch_size: int, lr: flo
     d = init_distributed(device)
     seed_everything(seed + d.rank)
     asked, precision = precision, resolve_precision(precision, device)
-    why = " (auto: this CPU has neither AMX nor AVX512-BF16 to multiply bf16 natively; training takes " \
+    why = " (auto: this CPU, or the vector capability torch is held to, has neither AMX nor AVX512-BF16 to " \
+          "multiply bf16 natively; training takes " \
           "several times as long as on one that has)" if asked == "auto" and precision == "fp32" and \
         not device.startswith("cuda") else ""
     log(f"training on {device} in {precision}{', channels-last' if channels_last else ''}{why}")

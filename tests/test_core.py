@@ -450,6 +450,18 @@ def test_fit_in_bf16_channels_last_with_a_batch_transform_learns(tmp_path):
         resolve_precision("fp8", "cpu")
 
 
+def test_auto_precision_is_fp32_when_torch_is_held_to_avx2_even_on_a_cpu_with_native_bf16(monkeypatch):
+    import torch
+
+    from physint_cli.training import resolve_precision
+
+    monkeypatch.setattr(torch.cpu, "_is_avx512_bf16_supported", lambda: True, raising=False)
+    monkeypatch.setattr(torch.backends.cpu, "get_cpu_capability", lambda: "AVX512")
+    assert resolve_precision("auto", "cpu") == "bf16"
+    monkeypatch.setattr(torch.backends.cpu, "get_cpu_capability", lambda: "AVX2")  # ATEN_CPU_CAPABILITY=avx2
+    assert resolve_precision("auto", "cpu") == "fp32"
+
+
 def test_each_epoch_reports_its_wall_time_and_the_time_left_and_auto_says_why_it_fell_back_to_fp32(
         tmp_path, monkeypatch):
     import torch
@@ -467,7 +479,7 @@ def test_each_epoch_reports_its_wall_time_and_the_time_left_and_auto_says_why_it
     result = fit(net, records, records, run=Run(tmp_path), epochs=3, batch_size=16, lr=0.05,
                  loss_fn=lambda m, b: torch.nn.functional.mse_loss(m(b["x"]), b["y"]),
                  metric_fn=lambda m, loader: 0.0, precision="auto", progress=True, log=lines.append)
-    assert "in fp32 (auto: this CPU has neither AMX nor AVX512-BF16" in lines[0]
+    assert "in fp32 (auto: this CPU, or the vector capability torch is held to, has neither AMX nor AVX512-BF16" in lines[0]
     epochs = [line for line in lines if line.startswith("epoch ")]
     assert len(epochs) == 3 and all(" s" in line.rsplit("(", 1)[1] for line in epochs)
     assert "to go)" in epochs[0] and "to go" not in epochs[-1]  # nothing left after the last epoch
