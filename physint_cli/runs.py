@@ -138,6 +138,16 @@ class Run:
         with open(self.path / "metrics.jsonl", "a") as f:
             f.write(json.dumps({"step": step, "time": round(time.time(), 3), **metrics}, default=float) + "\n")
 
+    def rewind_metrics(self, step: int) -> None:
+        """Drop the curve points after ``step``: a run resumed from its checkpoint at ``step`` logs those again."""
+        curves = self.path / "metrics.jsonl"
+        if not curves.is_file():
+            return
+        kept = [line for line in curves.read_text().splitlines() if line.strip() and json.loads(line)["step"] <= step]
+        tmp = curves.with_suffix(".jsonl.tmp")
+        tmp.write_text("".join(line + "\n" for line in kept))
+        tmp.replace(curves)
+
     def finish(self, metrics: dict[str, Any]) -> None:
         atomic_write_json(self.path / "metrics.json", metrics)
         self.update_info(status="complete", finished=time.strftime("%Y-%m-%dT%H:%M:%S%z"))

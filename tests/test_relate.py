@@ -208,6 +208,47 @@ def test_pipeline_generates_measures_and_deploys(tiny_relate):
         assert (out / "deploy" / "artifacts" / name).stat().st_size > 0
 
 
+class TinyInception(torch.nn.Module):
+    """Stands in for NVlabs' TorchScript FID Inception: same call, two statistics per channel as features."""
+
+    def forward(self, x: torch.Tensor, return_features: bool = True) -> torch.Tensor:
+        x = x.float() / 255
+        return torch.cat([x.mean((2, 3)), x.std((2, 3))], 1)
+
+
+class TinyI3D(torch.nn.Module):
+    """Stands in for StyleGAN-V's TorchScript I3D: same call; channel means and how much frames change."""
+
+    def forward(self, x: torch.Tensor, rescale: bool = False, resize: bool = True,
+                return_features: bool = True) -> torch.Tensor:
+        change = (x[:, :, 1:] - x[:, :, :-1]).abs().mean((2, 3, 4), keepdim=False)
+        return torch.cat([x.mean((2, 3, 4)), 10 * change], 1)
+
+
+class NotAFeatureNet(torch.nn.Module):
+    def forward(self, x: torch.Tensor, return_features: bool = True) -> torch.Tensor:
+        return x.float()
+
+
+def test_fid_from_a_local_inception_and_a_bad_weights_path_exits_2(tiny_relate, tmp_path):
+    out, _ = tiny_relate
+    good, wrong, junk = tmp_path / "inception.pt", tmp_path / "wrong.pt", tmp_path / "junk.pt"
+    torch.jit.save(torch.jit.script(TinyInception()), str(good))
+    torch.jit.save(torch.jit.script(NotAFeatureNet()), str(wrong))
+    junk.write_bytes(b"not a network")
+    code, stdout, err = call("eval", "relate", "--run", str(out / "train"), "--set", f"eval.inception={good}",
+                             "--out", str(tmp_path / "e"), "--json")
+    assert code == 0, err
+    ev = json.loads(stdout)["metrics"]
+    assert all(r["fid"] >= 0 for r in ev["generated"].values()) and ev["real"]["fid"] >= 0
+    assert "FID (local Inception)" in (tmp_path / "e" / "artifacts" / "table_5_4_1.md").read_text()
+    for path, words in ((tmp_path / "missing.pt", "no file at"), (junk, "not a TorchScript network"),
+                        (wrong, "not one feature row")):
+        code, _, err = call("eval", "relate", "--run", str(out / "train"), "--set", f"eval.inception={path}",
+                            "--out", str(tmp_path / "bad"))
+        assert code == 2 and words in err and "Traceback" not in err, err
+
+
 def test_video_pipeline_trains_clips_measures_fvd_truth_and_deploys(tmp_path):
     out = tmp_path / "video"
     code, stdout, err = call("pipeline", "relate", "--preset", "tiny", "--set", "train.variant=video", "--out", str(out),
@@ -220,6 +261,13 @@ def test_video_pipeline_trains_clips_measures_fvd_truth_and_deploys(tmp_path):
     assert ev["time_shuffled"]["fvd_truth"] >= 0 and ev["real"]["fvd_truth"] >= 0
     for name in ("clips.mp4", "ood_clips.mp4", "samples.png", "deploy.rrd"):
         assert (out / "deploy" / "artifacts" / name).stat().st_size > 0
+    # FVD on a local TorchScript I3D: shuffling the frames of real clips moves them away from the test clips
+    torch.jit.save(torch.jit.script(TinyI3D()), str(tmp_path / "i3d.pt"))
+    code, stdout, err = call("eval", "relate", "--run", str(out / "train"), "--set", f"eval.i3d={tmp_path / 'i3d.pt'}",
+                             "--out", str(tmp_path / "fvd"), "--json")
+    assert code == 0, err
+    fvd = json.loads(stdout)["metrics"]
+    assert fvd["time_shuffled"]["fvd"] > fvd["real"]["fvd"] >= 0 and fvd["generated"]["Gamma"]["fvd"] >= 0
     # clips come from sequences: a video model on still images, or without Gamma, exits 2
     code, _, err = call("train", "relate", "--preset", "tiny", "--data", str(out / "dataset"), "--set", "train.variant=video",
                         "--set", "train.arm=blockgan2d", "--out", str(tmp_path / "b"))
@@ -261,9 +309,13 @@ def test_training_resumes_where_it_stopped(tiny_relate, tmp_path):
     assert code == 0, err
     code, _, err = call("train", "relate", *common, "--set", "train.iterations=5", "--out", str(tmp_path / "halves"))
     assert code == 0, err
+    curves = tmp_path / "halves" / "metrics.jsonl"
+    with open(curves, "a") as f:  # a point an interrupted run logged after its last checkpoint (update 5)
+        f.write(json.dumps({"step": 7, "d_loss": 0.0}) + "\n")
     code, _, err = call("train", "relate", *common, "--set", "train.iterations=10", "--resume", "--run",
                         str(tmp_path / "halves"))
     assert code == 0, err
+    assert [json.loads(line)["step"] for line in curves.read_text().splitlines()] == [5, 10]  # no point twice
     a = torch.load(tmp_path / "straight" / "checkpoints" / "best.pt", weights_only=False)["model"]
     b = torch.load(tmp_path / "halves" / "checkpoints" / "best.pt", weights_only=False)["model"]
     assert all(torch.equal(a[k], b[k]) for k in a)

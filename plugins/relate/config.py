@@ -102,8 +102,10 @@ class TrainConfig:
 class EvalConfig:
     samples: int = field_(1000, "generated images the distances and rates are measured on (thesis FID: 10,000)", ge=2)
     features_epochs: int = field_(8, "epochs of the in-project feature network that regresses the ground truth", ge=1)
-    inception: str = field_("", "path of a local pytorch-fid Inception weights file (pt_inception-2015-12-05-*.pth) "
-                                "for FID; empty: no FID (nothing is downloaded)")
+    inception: str = field_("", "path of a local TorchScript FID Inception (NVlabs' inception-2015-12-05.pt) for FID "
+                                "beside FD-truth; empty: no FID (nothing is downloaded)")
+    i3d: str = field_("", "video: path of a local TorchScript Kinetics I3D (i3d_torchscript.pt, StyleGAN-V's FVD) for FVD "
+                          "beside FVD-truth; empty: no FVD")
     bg_range: float = field_(0.5, "background latents are drawn from U[-r, r] at test time (the thesis's 0.5)", gt=0.0,
                              le=1.0)
     clips: int = field_(500, "video: generated clips FVD-truth is measured on (thesis FVD: 500)", ge=2)

@@ -24,6 +24,7 @@ from physint_cli.errors import BadInput
 from physint_cli.method import Context
 
 from . import measure
+from .published import I3D, INCEPTION
 from .checkpoint import dataset_header, image_grid, load_model, real_frames, to_uint8
 from .dataset import load_split
 from .model import present_mask
@@ -90,16 +91,17 @@ def truth_error(net: measure.TruthNet, frames: torch.Tensor, targets: np.ndarray
 
 
 def table(results: dict[str, Any], arm: str, balls: bool) -> str:
-    lines = ["| generated with | FD-truth (ours) | FID, thesis Table 5.4.1 | plausible % | toggle px (thesis at 128 px) |",
-             "|---|---|---|---|---|"]
+    fid = lambda r: f"{r['fid']:.1f}" if "fid" in r else "-"  # noqa: E731
+    lines = ["| generated with | FD-truth (ours) | FID (local Inception) | FID, thesis Table 5.4.1 | plausible % "
+             "| toggle px (thesis at 128 px) |", "|---|---|---|---|---|---|"]
     for name, r in results["generated"].items():
         thesis = THESIS_FID.get(arm, "-") if balls and name == "Gamma" else "-"
         plaus = f"{100 * r['plausibility']['plausible']:.1f}" if r.get("plausibility") else "-"
         toggle = f"{results['toggle_px']:.1f} ({THESIS_TOGGLE.get(arm, '-')})" if name == "Gamma" else "-"
-        lines.append(f"| {name} ({arm}) | {r['fd_truth']:.2f} | {thesis} | {plaus} | {toggle} |")
+        lines.append(f"| {name} ({arm}) | {r['fd_truth']:.2f} | {fid(r)} | {thesis} | {plaus} | {toggle} |")
     real = results["real"]
     plaus = f"{100 * real['plausibility']['plausible']:.1f}" if real.get("plausibility") else "-"
-    lines.append(f"| real training frames (the floor) | {real['fd_truth']:.2f} | - | {plaus} | - |")
+    lines.append(f"| real training frames (the floor) | {real['fd_truth']:.2f} | {fid(real)} | - | {plaus} | - |")
     if "decomposition" in results:
         d = results["decomposition"]
         lines.append(f"\nbackground alone shows no ball: {100 * d['background_without_balls']:.1f} %; one object alone shows "
@@ -168,6 +170,8 @@ def evaluate_video(ctx: Context, model, meta: dict[str, Any], root: Path) -> dic
     test_seq = real_frames(test, size).reshape(*test["frames"].shape[:2], 3, size, size)
     train_clips, train_pairs = clip_windows(train_seq, frames)
     test_clips, test_pairs = clip_windows(test_seq, frames)
+    as_seq = lambda x: x.reshape(len(x), frames, 3, size, size)  # noqa: E731
+    i3d = I3D.open(cfg.i3d, as_seq(test_clips[:2])) if cfg.i3d else None
     path = root / "features" / f"videonet-{size}px-{frames}f-{cfg.features_epochs}ep.pt"
     targets = clip_truth(train, train_pairs, frames, data_size)
     net = cached_truth_net(path, train_clips, targets, cfg.features_epochs, ctx.log, "real clips")
@@ -183,6 +187,10 @@ def evaluate_video(ctx: Context, model, meta: dict[str, Any], root: Path) -> dic
                  "ball_speed_px": ball_speed(test_clips[:cfg.clips].unflatten(1, (frames, 3)).permute(0, 1, 3, 4, 2).numpy(),
                                              detector)},
         "time_shuffled": {"fvd_truth": measure.frechet(measure.embed(net, shuffled), test_features)}}
+    if i3d:
+        test_i3d = i3d.features(as_seq(test_clips[:cfg.clips]))
+        results["real"]["fvd"] = measure.frechet(i3d.features(as_seq(real)), test_i3d)
+        results["time_shuffled"]["fvd"] = measure.frechet(i3d.features(as_seq(shuffled)), test_i3d)
     gen = torch.Generator().manual_seed(ctx.seed)
     latents = g.sample(cfg.clips, bg_range=cfg.bg_range, generator=gen)
     results["generated"] = {}
@@ -192,6 +200,8 @@ def evaluate_video(ctx: Context, model, meta: dict[str, Any], root: Path) -> dic
         r = {"fvd_truth": measure.frechet(measure.embed(net, clips.flatten(1, 2)), test_features),
              "plausibility": measure.plausibility(pics.reshape(-1, size, size, 3), detector),
              "ball_speed_px": ball_speed(pics, detector)}
+        if i3d:
+            r["fvd"] = measure.frechet(i3d.features(clips), test_i3d)
         results["generated"][name] = r
         ctx.log(f"{name}: FVD-truth {r['fvd_truth']:.2f}, plausible frames {100 * r['plausibility']['plausible']:.1f} %, "
                 f"balls move {r['ball_speed_px']:.2f} px per frame")
@@ -200,16 +210,18 @@ def evaluate_video(ctx: Context, model, meta: dict[str, Any], root: Path) -> dic
     ctx.log(f"time-shuffled training clips: FVD-truth {results['time_shuffled']['fvd_truth']:.2f}; real training clips "
             f"(the floor): {results['real']['fvd_truth']:.2f}")
     results["decomposition"] = measure.decomposition(g, {k: v[:200] for k, v in latents.items()}, detector)
-    lines = ["| clips | FVD-truth (ours) | FVD, thesis 5.4.3 | plausible frames % | ball speed px/frame |",
-             "|---|---|---|---|---|"]
+    fvd = lambda r: f"{r['fvd']:.1f}" if "fvd" in r else "-"  # noqa: E731
+    lines = ["| clips | FVD-truth (ours) | FVD (local I3D) | FVD, thesis 5.4.3 | plausible frames % | ball speed px/frame |",
+             "|---|---|---|---|---|---|"]
     for name, r in results["generated"].items():
         thesis = THESIS_FVD["relate"] if name == "Gamma" else "-"
-        lines.append(f"| generated, {name} | {r['fvd_truth']:.2f} | {thesis} | {100 * r['plausibility']['plausible']:.1f} "
-                     f"| {r['ball_speed_px']:.2f} |")
-    lines.append(f"| time-shuffled training clips | {results['time_shuffled']['fvd_truth']:.2f} | "
+        lines.append(f"| generated, {name} | {r['fvd_truth']:.2f} | {fvd(r)} | {thesis} | "
+                     f"{100 * r['plausibility']['plausible']:.1f} | {r['ball_speed_px']:.2f} |")
+    shuffled_r, real_r = results["time_shuffled"], results["real"]
+    lines.append(f"| time-shuffled training clips | {shuffled_r['fvd_truth']:.2f} | {fvd(shuffled_r)} | "
                  f"{THESIS_FVD['time-shuffled training sequences']} | - | - |")
-    lines.append(f"| real training clips (the floor) | {results['real']['fvd_truth']:.2f} | - | - | "
-                 f"{results['real']['ball_speed_px']:.2f} |")
+    lines.append(f"| real training clips (the floor) | {real_r['fvd_truth']:.2f} | {fvd(real_r)} | - | - | "
+                 f"{real_r['ball_speed_px']:.2f} |")
     ctx.output().artifact("table_fvd.md").write_text(
         "\n".join(lines) + f"\n\n{frames}-frame clips at {size} px. FVD-truth: Fréchet distance on an in-project network "
         "regressing the simulator's trajectories from clips (not FVD)\n")
@@ -235,6 +247,7 @@ def evaluate(ctx: Context) -> dict[str, Any]:
     data_size = int(dataset_header(root)["config"]["data"]["size"])
     train, test = load_split(root, "train", FIELDS), load_split(root, "test", FIELDS)
     train_frames, real_test = real_frames(train, size), real_frames(test, size)
+    inception = INCEPTION.open(cfg.inception, real_test[:2]) if cfg.inception else None
     net = truth_net(root, train_frames, frame_truth(train, data_size, size, balls), size, cfg.features_epochs, ctx.log)
     test_features = measure.embed(net, real_test)
     pick = torch.randperm(len(real_test), generator=torch.Generator().manual_seed(1))[:cfg.samples]
@@ -245,6 +258,9 @@ def evaluate(ctx: Context) -> dict[str, Any]:
                                         "truth_rmse": truth_error(net, real_test[pick], frame_truth(test, data_size, size, balls)[pick.numpy()])}}
     if detector:
         results["real"]["plausibility"] = measure.plausibility(real_test[pick].permute(0, 2, 3, 1).numpy(), detector)
+    if inception:
+        test_inception = inception.features(real_test[pick])
+        results["real"]["fid"] = measure.frechet(inception.features(real_train), test_inception)
     counts = meta.get("counts", [g.objects, g.objects])
     gen = torch.Generator().manual_seed(ctx.seed)
     present = present_mask(cfg.samples, counts[0], counts[1], g.objects, gen)
@@ -255,6 +271,8 @@ def evaluate(ctx: Context) -> dict[str, Any]:
             continue
         images = generate(g, latents, use_relation)
         r: dict[str, Any] = {"fd_truth": measure.frechet(measure.embed(net, images), test_features)}
+        if inception:
+            r["fid"] = measure.frechet(inception.features(images), test_inception)
         if detector:
             r["plausibility"] = measure.plausibility(to_uint8(images), detector)
         results["generated"][name] = r

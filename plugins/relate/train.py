@@ -200,6 +200,7 @@ def train(ctx: Context) -> dict[str, Any]:
             raise BadInput(f"{last} was trained with another model ({state['kwargs']}); resume with its config or "
                            "train into a new --out")
         start = trainer.load(state)
+        run.rewind_metrics(start)
         ctx.log(f"resuming at generator update {start} of {cfg.iterations}")
     meta = {"method": "relate", "model": MODEL, "kwargs": kwargs, "dataset": str(ctx.data), "scene": scene,
             "backend": header.get("backend"), "counts": list(counts), "size": cfg.size}
