@@ -160,13 +160,14 @@ def test_toggle_distance_is_small_where_objects_are_drawn_at_their_pose():
     assert near < 32 / 4  # the renderer is local: leaving an object out changes the image round it
 
 
-def test_detector_reads_real_frames_and_catches_a_ball_outside_the_bowl():
+@pytest.mark.parametrize("balls", [2, 4])
+def test_detector_reads_real_frames_and_catches_a_ball_outside_the_bowl(balls):
     rng = np.random.default_rng(8)
     bowl = S.sample_bowl(rng)
-    starts, _ = S.sample_balls(rng, bowl, 2)
+    starts, _ = S.sample_balls(rng, bowl, balls)
     scene, truth = S.balls_scene(bowl, starts, 64)
     camera = scene.cameras[0]
-    detector = measure.Detector(64)
+    detector = measure.Detector(64, balls)
     with make(scene) as sim:
         seen = detector(sim.render("top").rgb)
         assert seen.plausible

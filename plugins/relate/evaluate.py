@@ -180,7 +180,7 @@ def evaluate_video(ctx: Context, model, meta: dict[str, Any], root: Path) -> dic
     real = train_clips[pick]
     order = torch.argsort(torch.rand(len(real), frames, generator=torch.Generator().manual_seed(3)), dim=1)
     shuffled = real.reshape(len(real), frames, 3, size, size)[torch.arange(len(real))[:, None], order].flatten(1, 2)
-    detector = measure.Detector(size)
+    detector = measure.Detector(size, int(data_cfg["balls"]))
     as_clips = lambda x: to_uint8(x.reshape(-1, 3, size, size)).reshape(len(x), frames, size, size, 3)  # noqa: E731
     results: dict[str, Any] = {
         "real": {"fvd_truth": measure.frechet(measure.embed(net, real), test_features),
@@ -244,7 +244,8 @@ def evaluate(ctx: Context) -> dict[str, Any]:
         return evaluate_video(ctx, model, meta, root)
     scene, size = meta["scene"], int(meta["size"])
     balls = scene == "balls-in-bowl"
-    data_size = int(dataset_header(root)["config"]["data"]["size"])
+    data_cfg = dataset_header(root)["config"]["data"]
+    data_size = int(data_cfg["size"])
     train, test = load_split(root, "train", FIELDS), load_split(root, "test", FIELDS)
     train_frames, real_test = real_frames(train, size), real_frames(test, size)
     inception = INCEPTION.open(cfg.inception, real_test[:2]) if cfg.inception else None
@@ -253,7 +254,7 @@ def evaluate(ctx: Context) -> dict[str, Any]:
     pick = torch.randperm(len(real_test), generator=torch.Generator().manual_seed(1))[:cfg.samples]
     floor_pick = torch.randperm(len(train_frames), generator=torch.Generator().manual_seed(2))[:cfg.samples]
     real_train = train_frames[floor_pick]
-    detector = measure.Detector(size) if balls else None
+    detector = measure.Detector(size, int(data_cfg["balls"])) if balls else None
     results: dict[str, Any] = {"real": {"fd_truth": measure.frechet(measure.embed(net, real_train), test_features),
                                         "truth_rmse": truth_error(net, real_test[pick], frame_truth(test, data_size, size, balls)[pick.numpy()])}}
     if detector:

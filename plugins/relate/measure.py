@@ -44,19 +44,19 @@ class Seen:
 class Detector:
     """Reads balls and bowl off uint8 images (H, W, 3) by colour."""
 
-    def __init__(self, size: int, colours=S.BALL_COLOURS):
+    def __init__(self, size: int, balls: int = 2):
         self.size = size
-        self.colours = np.asarray([c[:3] for c in colours], np.float32)
+        self.colours = np.asarray([c[:3] for c in S.BALL_COLOURS[:balls]], np.float32)  # ball k has colour k
         self.radius = S.BALL_RADIUS / S.BOWL_EXTENT * size / 2  # a ball's radius in pixels
         self.min_pixels = max(1.0, 0.3 * math.pi * self.radius ** 2)  # a third of its disc
 
     def ball_masks(self, image: np.ndarray) -> list[np.ndarray]:
         x = image.astype(np.float32) / 255.0
         masks = []
-        for colour in self.colours:
-            dominant = int(np.argmax(colour))
-            others = [c for c in range(3) if c != dominant]
-            masks.append((x[..., dominant] - x[..., others].max(axis=-1) > 0.25) & (x[..., dominant] > 0.35))
+        for colour in self.colours:  # a ball's pixels: its colour's high channels well above its low ones
+            high, low = colour > 0.5, colour <= 0.5
+            bright = x[..., high].min(axis=-1)
+            masks.append((bright - x[..., low].max(axis=-1) > 0.25) & (bright > 0.35))
         return masks
 
     def __call__(self, image: np.ndarray) -> Seen:

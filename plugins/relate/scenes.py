@@ -1,6 +1,6 @@
 """The three scene families RELATE is trained on, as backend-neutral scenes (thesis Section 5.4, Appendix 5.C).
 
-* ``balls-in-bowl``: two balls of fixed, distinct colours roll in an elliptical bowl of random
+* ``balls-in-bowl``: two (up to four) balls of fixed, distinct colours roll in an elliptical bowl of random
   orientation and eccentricity, seen from straight above (a replica of Ehrhardt et al.'s
   BallsInBowl). The bowl is the elliptical paraboloid z = depth * ((x'/a)^2 + (y'/b)^2) in its own
   frame turned by ``angle``; it is built from convex slabs (one per patch of a polar grid), since
@@ -26,7 +26,8 @@ from physint_backends.spec import Body, Camera, Geom, Ground, Light, Scene
 
 # balls-in-bowl (metres)
 BALL_RADIUS = 0.025
-BALL_COLOURS = ((0.9, 0.15, 0.1, 1.0), (0.1, 0.35, 0.95, 1.0))  # fixed: ball 0 red, ball 1 blue
+# fixed per ball (data.balls <= 4): red, blue, green, yellow; each is high in some channels and low in the others
+BALL_COLOURS = ((0.9, 0.15, 0.1, 1.0), (0.1, 0.35, 0.95, 1.0), (0.1, 0.75, 0.15, 1.0), (0.95, 0.85, 0.1, 1.0))
 BOWL_MAJOR = 0.16  # semi-axis a
 BOWL_MINOR = (0.55, 1.0)  # b / a: the eccentricity's range
 BOWL_DEPTH = 0.03  # shallow enough that balls at 0.8 m/s range over the whole bowl (median 0.38 a)
