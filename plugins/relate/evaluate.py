@@ -175,7 +175,10 @@ def evaluate_video(ctx: Context, model, meta: dict[str, Any], root: Path) -> dic
     path = root / "features" / f"videonet-{size}px-{frames}f-{cfg.features_epochs}ep.pt"
     targets = clip_truth(train, train_pairs, frames, data_size)
     net = cached_truth_net(path, train_clips, targets, cfg.features_epochs, ctx.log, "real clips")
-    test_features = measure.embed(net, test_clips)
+    nets = {"fvd_truth": (lambda x: measure.embed(net, x), test_clips)}
+    if i3d:
+        nets["fvd"] = (lambda x: i3d.features(as_seq(x)), test_clips[:cfg.clips])
+    distances = measure.Distances(nets)
     pick = torch.randperm(len(train_clips), generator=torch.Generator().manual_seed(2))[:cfg.clips]
     real = train_clips[pick]
     order = torch.argsort(torch.rand(len(real), frames, generator=torch.Generator().manual_seed(3)), dim=1)
@@ -183,25 +186,19 @@ def evaluate_video(ctx: Context, model, meta: dict[str, Any], root: Path) -> dic
     detector = measure.Detector(size, int(data_cfg["balls"]))
     as_clips = lambda x: to_uint8(x.reshape(-1, 3, size, size)).reshape(len(x), frames, size, size, 3)  # noqa: E731
     results: dict[str, Any] = {
-        "real": {"fvd_truth": measure.frechet(measure.embed(net, real), test_features),
+        "real": {**distances(real),
                  "ball_speed_px": ball_speed(test_clips[:cfg.clips].unflatten(1, (frames, 3)).permute(0, 1, 3, 4, 2).numpy(),
                                              detector)},
-        "time_shuffled": {"fvd_truth": measure.frechet(measure.embed(net, shuffled), test_features)}}
-    if i3d:
-        test_i3d = i3d.features(as_seq(test_clips[:cfg.clips]))
-        results["real"]["fvd"] = measure.frechet(i3d.features(as_seq(real)), test_i3d)
-        results["time_shuffled"]["fvd"] = measure.frechet(i3d.features(as_seq(shuffled)), test_i3d)
+        "time_shuffled": distances(shuffled)}
     gen = torch.Generator().manual_seed(ctx.seed)
     latents = g.sample(cfg.clips, bg_range=cfg.bg_range, generator=gen)
     results["generated"] = {}
     for name, use_relation in (("Gamma", True), ("Gamma bypassed (still)", False)):
         clips = generate_clips(g, latents, frames, use_relation)
         pics = as_clips(clips.flatten(1, 2))
-        r = {"fvd_truth": measure.frechet(measure.embed(net, clips.flatten(1, 2)), test_features),
+        r = {**distances(clips.flatten(1, 2)),
              "plausibility": measure.plausibility(pics.reshape(-1, size, size, 3), detector),
              "ball_speed_px": ball_speed(pics, detector)}
-        if i3d:
-            r["fvd"] = measure.frechet(i3d.features(clips), test_i3d)
         results["generated"][name] = r
         ctx.log(f"{name}: FVD-truth {r['fvd_truth']:.2f}, plausible frames {100 * r['plausibility']['plausible']:.1f} %, "
                 f"balls move {r['ball_speed_px']:.2f} px per frame")
@@ -250,18 +247,18 @@ def evaluate(ctx: Context) -> dict[str, Any]:
     train_frames, real_test = real_frames(train, size), real_frames(test, size)
     inception = INCEPTION.open(cfg.inception, real_test[:2]) if cfg.inception else None
     net = truth_net(root, train_frames, frame_truth(train, data_size, size, balls), size, cfg.features_epochs, ctx.log)
-    test_features = measure.embed(net, real_test)
     pick = torch.randperm(len(real_test), generator=torch.Generator().manual_seed(1))[:cfg.samples]
+    nets = {"fd_truth": (lambda x: measure.embed(net, x), real_test)}
+    if inception:  # FID against the evaluated test frames, not all of them (the Inception is costly on a CPU)
+        nets["fid"] = (inception.features, real_test[pick])
+    distances = measure.Distances(nets)
     floor_pick = torch.randperm(len(train_frames), generator=torch.Generator().manual_seed(2))[:cfg.samples]
     real_train = train_frames[floor_pick]
     detector = measure.Detector(size, int(data_cfg["balls"])) if balls else None
-    results: dict[str, Any] = {"real": {"fd_truth": measure.frechet(measure.embed(net, real_train), test_features),
+    results: dict[str, Any] = {"real": {**distances(real_train),
                                         "truth_rmse": truth_error(net, real_test[pick], frame_truth(test, data_size, size, balls)[pick.numpy()])}}
     if detector:
         results["real"]["plausibility"] = measure.plausibility(real_test[pick].permute(0, 2, 3, 1).numpy(), detector)
-    if inception:
-        test_inception = inception.features(real_test[pick])
-        results["real"]["fid"] = measure.frechet(inception.features(real_train), test_inception)
     counts = meta.get("counts", [g.objects, g.objects])
     gen = torch.Generator().manual_seed(ctx.seed)
     present = present_mask(cfg.samples, counts[0], counts[1], g.objects, gen)
@@ -271,9 +268,7 @@ def evaluate(ctx: Context) -> dict[str, Any]:
         if not use_relation and g.relation is None:
             continue
         images = generate(g, latents, use_relation)
-        r: dict[str, Any] = {"fd_truth": measure.frechet(measure.embed(net, images), test_features)}
-        if inception:
-            r["fid"] = measure.frechet(inception.features(images), test_inception)
+        r: dict[str, Any] = distances(images)
         if detector:
             r["plausibility"] = measure.plausibility(to_uint8(images), detector)
         results["generated"][name] = r

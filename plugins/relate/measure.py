@@ -192,6 +192,17 @@ def frechet(a: np.ndarray, b: np.ndarray) -> float:
     return float(((mu_a - mu_b) ** 2).sum() + np.trace(c_a) + np.trace(c_b) - 2 * np.sqrt(np.clip(eig.real, 0, None)).sum())
 
 
+class Distances:
+    """Fréchet distances of a set of images or clips to the real test set, on every feature network in use:
+    ``nets`` maps a metric's name to (features function, the real test inputs it is measured against)."""
+
+    def __init__(self, nets: dict):
+        self.nets = {name: (features, features(reference)) for name, (features, reference) in nets.items()}
+
+    def __call__(self, x: torch.Tensor) -> dict[str, float]:
+        return {name: frechet(features(x), reference) for name, (features, reference) in self.nets.items()}
+
+
 # -- Table 5.A.1's toggle score -----------------------------------------------------------------------------------
 
 @torch.no_grad()
