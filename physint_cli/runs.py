@@ -144,9 +144,7 @@ class Run:
         if not curves.is_file():
             return
         kept = [line for line in curves.read_text().splitlines() if line.strip() and json.loads(line)["step"] <= step]
-        tmp = curves.with_suffix(".jsonl.tmp")
-        tmp.write_text("".join(line + "\n" for line in kept))
-        tmp.replace(curves)
+        atomic_write_bytes(curves, "".join(line + "\n" for line in kept).encode())
 
     def finish(self, metrics: dict[str, Any]) -> None:
         atomic_write_json(self.path / "metrics.json", metrics)
