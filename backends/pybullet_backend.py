@@ -41,7 +41,7 @@ from pybullet_utils.bullet_client import BulletClient
 
 from .base import SEG_BACKGROUND, SEG_ROBOT, Frame, Simulation
 from .poses import compose, invert
-from .spec import Body, Geom, Light, Scene, SpecError, Texture, _rgba
+from .spec import Body, Geom, Light, Scene, SpecError, Texture, _rgba, quat_matrix
 
 GROUND_NAME = "ground"
 ROBOT_NAME = "robot"
@@ -71,16 +71,6 @@ def to_xyzw(q) -> tuple[float, float, float, float]:
 def to_wxyz(q) -> np.ndarray:
     """Bullet quaternion (x, y, z, w) -> spec quaternion (w, x, y, z) as an array."""
     return np.array((q[3], q[0], q[1], q[2]), dtype=float)
-
-
-def quat_matrix(q_wxyz) -> np.ndarray:
-    """Rotation matrix of a unit quaternion (w, x, y, z)."""
-    w, x, y, z = q_wxyz
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ])
 
 
 def matrix_quat(m: np.ndarray) -> np.ndarray:

@@ -37,6 +37,14 @@ class SpecError(BadInput):
     """A scene spec or an action is invalid; the message names the field and what is allowed."""
 
 
+def quat_matrix(quat) -> np.ndarray:
+    """Rotation matrix of a unit quaternion (w, x, y, z)."""
+    w, x, y, z = quat
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+                     [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+                     [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+
+
 def _finite_vector(value: Any, n: int, where: str) -> tuple[float, ...]:
     try:
         arr = np.asarray(value, dtype=float).reshape(-1)
@@ -144,6 +152,26 @@ class Geom:
         z = np.asarray(self.mesh.vertices)[:, 2]
         return float(z.max() - z.min()) / 2
 
+    def outline(self, segments: int = 16) -> np.ndarray:
+        """(N, 3) points in the body frame whose convex hull is the geom (a sphere's and a cylinder's curved
+        surfaces to within one part in ``segments``): the box's corners, the cylinder's two rims, points spread
+        over the sphere (golden-angle spiral), the mesh's vertices. Projected, they bound the geom in an image."""
+        if self.shape == "box":
+            local = np.array([[i, j, k] for i in (-0.5, 0.5) for j in (-0.5, 0.5) for k in (-0.5, 0.5)]) * self.size
+        elif self.shape == "cylinder":
+            phi = np.linspace(0.0, 2 * math.pi, segments, endpoint=False)
+            rim = np.stack([self.size[0] * np.cos(phi), self.size[0] * np.sin(phi)], axis=1)
+            local = np.concatenate([np.c_[rim, np.full(segments, z)] for z in (-self.size[1] / 2, self.size[1] / 2)])
+        elif self.shape == "sphere":
+            n = segments ** 2 // 2
+            z = np.linspace(-1.0, 1.0, n)
+            phi = np.arange(n) * math.pi * (3.0 - math.sqrt(5.0))
+            r = np.sqrt(1.0 - z ** 2)
+            local = self.size[0] * np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
+        else:
+            local = np.asarray(self.mesh.vertices, dtype=float)
+        return np.asarray(self.pos) + local @ quat_matrix(self.quat).T
+
 
 _SIZE_NAMES = {"box": "(x, y, z) edge lengths", "cylinder": "(radius, height)", "sphere": "(radius,)", "mesh": "()"}
 
@@ -180,6 +208,13 @@ class Body:
     @property
     def total_mass(self) -> float:
         return self.mass if self.mass is not None else self.density * sum(g.volume() for g in self.geoms)
+
+    def outline(self, pos=None, quat=None) -> np.ndarray:
+        """(N, 3) world points whose convex hull is the body (its geoms' outlines) at pose (``pos``, ``quat``),
+        by default its own."""
+        local = np.concatenate([g.outline() for g in self.geoms])
+        pos = self.pos if pos is None else pos
+        return np.asarray(pos, dtype=float) + local @ quat_matrix(self.quat if quat is None else quat).T
 
     # -- convenience constructors for single-geom bodies -----------------------------------
     @classmethod
@@ -231,10 +266,7 @@ class Camera:
     @classmethod
     def from_pose(cls, name: str, pos, quat, **kw) -> Camera:
         """A camera at ``pos`` with orientation ``quat`` (w, x, y, z), looking along its local -z, y up."""
-        w, x, y, z = _unit_quat(quat, f"camera {name!r} quat")
-        rot = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
+        rot = quat_matrix(_unit_quat(quat, f"camera {name!r} quat"))
         p = np.asarray(_finite_vector(pos, 3, f"camera {name!r} pos"))
         return cls(name, pos=tuple(p), lookat=tuple(p - rot[:, 2]), up=tuple(rot[:, 1]), **kw)
 
