@@ -395,3 +395,16 @@ def test_simulator_agrees_with_lemma_1(backend, sampled):
         assert np.mean(v) >= 0.9, (backend, key, rates)
     for key, v in first_ok.items():
         assert np.mean(v) >= 0.9, (backend, key)
+
+
+def test_lemma1_side_view_is_lemma1_on_the_tower_as_seen():
+    """Blocks as (centre, width, height): the load's centre of mass must lie over the contact below."""
+    from physint_plugins.stability.physics import lemma1_side_view
+
+    assert lemma1_side_view([(0, 10, 5), (4, 10, 5)])["stable"]
+    assert not lemma1_side_view([(0, 10, 5), (6, 10, 5)])["stable"]  # the top's centre beyond the edge below
+    label = lemma1_side_view([(0, 10, 5), (4, 10, 5), (8, 10, 5)])  # each on its support, the load of two not
+    assert not label["stable"] and label["interface"] == 1 and label["violation"] == "VCOM"
+    # the block overhangs on its own (centre 3 beyond the edge 2 below), a heavier one on top holds it
+    assert not lemma1_side_view([(0, 4, 4), (3, 4, 2)])["stable"]
+    assert lemma1_side_view([(0, 4, 4), (3, 4, 2), (1.2, 3, 6)])["stable"]

@@ -60,6 +60,10 @@ def register_models(register):
 @hookimpl
 def register_metrics(register):
     from .evaluate import accuracy_table
+    from .physics import lemma1_side_view
 
     register(MetricInfo("stability_accuracy", method="stability", fn=accuracy_table,
                         description="accuracy overall and per subset, height and violation type (Table 3.3)"))
+    register(MetricInfo("lemma1_side_view", method="stability", fn=lemma1_side_view,
+                        description="Lemma 1 (Eq. 3.1) on a tower seen side-on: blocks bottom up as (centre, width, "
+                                    "height) along an image's axes; the stack's label as a dict (relate's towers)"))

@@ -490,6 +490,16 @@ def _interface(stack: list[StackObject], i: int, load_com: np.ndarray) -> Interf
     return Interface(i, "ok" if margin >= 0 else "VCOM", contact, load_com, margin, inradius(contact), own)
 
 
+def lemma1_side_view(blocks) -> dict:
+    """Lemma 1 on a tower as a side-on picture shows it: ``blocks`` bottom up as (centre, width, height) along
+    the picture's horizontal and vertical axes, in any one unit (pixels, say). Each block is taken as a box as
+    deep as it is wide, of uniform density, so only the horizontal axis matters: a tower stable in 3D is
+    stable seen from any side, so this is a necessary condition. Returns :meth:`StackLabel.to_dict`."""
+    stack = [StackObject("box", (max(float(w), 1e-6), max(float(w), 1e-6), max(float(h), 1e-6)), x=float(c))
+             for c, w, h in blocks]
+    return analyse(stack).to_dict()
+
+
 def analyse(stack: list[StackObject]) -> StackLabel:
     """Lemma 1: check Eq. 3.1 at every interface, from the top of the tower down.
 
