@@ -68,6 +68,35 @@ def test_shapestacks_come_through_the_registry_and_stand():
     assert np.abs(after - before).max() < 0.01
 
 
+def test_extent_boxes_bound_each_rendered_block_and_lemma1_reads_them():
+    """The dataset's pixel boxes (projected outlines) hold each block's rendered pixels and no more than a pixel
+    besides; Lemma 1 through the registry calls the real stable towers stable and a shifted top block not."""
+    from physint_plugins.relate.dataset import record
+
+    build = get_plugins().scene("stability", "ccs").build
+    lemma1 = get_plugins().metric("lemma1_side_view", "stability").fn
+    scene, truth = S.stack_scene(build, seed=5, height=3, size=64, randomise=False)
+    with make(scene) as sim:
+        rec = record(sim, scene, truth, None, 1, 0.05, 5)
+        seg = sim.render("front", segmentation=True).segmentation
+    boxes = measure.tower_boxes(measure.box_targets(rec["extent"][None, 0], rec["present"][None], 64), 64)[0]
+    assert len(boxes) == 3
+    index = [b.name for b in scene.bodies]
+    for k, name in enumerate(truth.names):
+        v, u = np.nonzero(seg == index.index(name))
+        u0, v0, u1, v1 = boxes[k]  # every pixel of the block inside its box, which is at most 2 px wider
+        assert len(u) and u0 - 1 <= u.min() and u.max() + 0.5 <= u1 + 1 and v0 - 1 <= v.min() and v.max() + 0.5 <= v1 + 1
+        assert u1 - u0 <= u.max() + 1 - u.min() + 2
+    tower = measure.tower_plausibility([boxes], lemma1, 64)
+    assert tower["stable"] == 1.0 and tower["resting"] == 1.0
+    shifted = boxes.copy()
+    shifted[-1, [0, 2]] += (boxes[-2, 2] - boxes[-1, 0]) + 1  # the top block beyond the one below it
+    floating = boxes.copy()
+    floating[-1, [1, 3]] -= 10  # the top block 10 px above the one below
+    towers = measure.tower_plausibility([shifted, floating], lemma1, 64)
+    assert towers["stable"] == 0.5 and towers["resting"] == 0.5 and towers["plausible"] == 0.0
+
+
 def test_gamma_is_order_invariant_and_ignores_absent_objects():
     torch.manual_seed(0)
     gamma = Relation(z_dim=4, z_bg=2)
@@ -287,6 +316,13 @@ def test_ordered_variant_trains_on_towers_only(tiny_relate, tmp_path):
                         "--set", "data.train=4", "--set", "data.test=2", "--out", str(tmp_path / "stacks"))
     assert code == 0, err
     assert (tmp_path / "stacks" / "deploy" / "artifacts" / "ood.png").stat().st_size > 0
+    towers = json.loads((tmp_path / "stacks" / "eval" / "metrics.json").read_text())
+    towers = towers.get("metrics", towers)
+    assert set(towers["real"]["towers"]) == {"test towers, read", "unstable towers (held out), read",
+                                             "test towers, simulated boxes"}
+    assert towers["real"]["towers"]["test towers, simulated boxes"]["stable"] == 1.0  # Lemma 1 on the simulator's boxes
+    for name in ("Gamma", "Gamma bypassed"):
+        assert 0.0 <= towers["generated"][name]["towers"]["plausible"] <= 1.0
     code, _, err = call("eval", "relate", "--run", str(out / "train"), "--data", str(tmp_path / "stacks" / "dataset"),
                         "--out", str(tmp_path / "e"))
     assert code == 2 and "trained on balls-in-bowl" in err  # a balls model is not measured on towers

@@ -51,6 +51,8 @@ class DataConfig:
     speed: float = field_(0.8, "largest start speed of a ball along each axis (m/s)", gt=0.0)
     min_objects: int = field_(2, "fewest objects of a clevr-table scene or blocks of a tower", ge=1)
     max_objects: int = field_(5, "most objects of a clevr-table scene or blocks of a tower", ge=1, le=10)
+    unstable: int = field_(1000, "shapestacks: towers Lemma 1 calls unstable (VCOM), a split of their own never trained "
+                                 "on, which teaches and checks the evaluation's tower reader", ge=0)
     textures: bool = field_(False, "shapestacks: the stability plugin's random textures and colours")
     per_shard: int = field_(50, "sequences or images per shard (work unit)", ge=1)
 
@@ -133,7 +135,7 @@ class RelateConfig:
 
 
 PRESETS = {
-    "tiny": {"data.train": 8, "data.test": 4, "data.size": 32, "data.frames": 8, "data.per_shard": 4,
+    "tiny": {"data.train": 8, "data.test": 4, "data.unstable": 8, "data.size": 32, "data.frames": 8, "data.per_shard": 4,
              "train.size": 16, "train.grid": 4, "train.channels": 8, "train.d_channels": 8, "train.iterations": 30,
              "train.batch_size": 8, "train.clip": 4, "train.checkpoint_every": 10, "train.samples_every": 15, "eval.samples": 32,
              "eval.features_epochs": 2, "eval.clips": 8, "eval.frames": 6, "eval.toggle_samples": 8, "deploy.samples": 4},

@@ -2,11 +2,12 @@
 clevr-table and shapestacks (single images).
 
 Every record is a clip of ``frames`` images (1 for the static scenes) of one scene from its one camera,
-with the simulator's ground truth beside it, for evaluation only: each object's world position and
-pixel position per frame, which of the ``max_objects`` slots are present, shape / colour / size
+with the simulator's ground truth beside it, for evaluation only: each object's world position, pixel
+position and pixel bounding box (``extent``: u_min, v_min, u_max, v_max of its projected outline) per frame, which of the ``max_objects`` slots are present, shape / colour / size
 indices where the scene has them, and the bowl's (angle, a, b, depth). Record ``n`` of a split draws
 everything from ``(unit seed, n)``; the number of objects of a static scene is uniform in
-[``min_objects``, ``max_objects``].
+[``min_objects``, ``max_objects``]. Shapestacks has a third split, ``unstable`` (``data.unstable`` towers that
+Lemma 1 calls unstable, VCOM): never trained on, it teaches and checks the evaluation's tower reader.
 """
 
 from __future__ import annotations
@@ -37,10 +38,13 @@ def plan_units(ctx: Context) -> list[Unit]:
     cfg = ctx.config.data
     if ctx.scene == "shapestacks" and cfg.min_objects < 2:
         raise BadInput("shapestacks towers have at least 2 blocks: set data.min_objects >= 2")
-    return split_units({"train": cfg.train, "test": cfg.test}, cfg.per_shard, ctx.seed)
+    counts = {"train": cfg.train, "test": cfg.test}
+    if ctx.scene == "shapestacks" and cfg.unstable:
+        counts["unstable"] = cfg.unstable
+    return split_units(counts, cfg.per_shard, ctx.seed)
 
 
-def draw_scene(ctx: Context, rng: np.random.Generator):
+def draw_scene(ctx: Context, rng: np.random.Generator, split: str = "train"):
     """One scene of ``ctx.scene``, its ground truth, and the start velocities of its objects (or None)."""
     cfg = ctx.config.data
     if ctx.scene == "balls-in-bowl":
@@ -55,7 +59,8 @@ def draw_scene(ctx: Context, rng: np.random.Generator):
     from physint_cli.plugins import get_plugins
 
     build = get_plugins().scene("stability", "ccs").build  # the stability plugin's towers, through the registry
-    scene, truth = S.stack_scene(build, int(rng.integers(2 ** 31)), count, cfg.size, cfg.textures)
+    scene, truth = S.stack_scene(build, int(rng.integers(2 ** 31)), count, cfg.size, cfg.textures,
+                                 kind="VCOM" if split == "unstable" else "stable")
     return scene, truth, None
 
 
@@ -68,17 +73,22 @@ def record(sim, scene, truth: S.Truth, velocities, frames: int, dt: float, k_max
             sim.set_velocity(name, v)
     images = np.zeros((frames, camera.height, camera.width, 3), np.uint8)
     world = np.zeros((frames, k_max, 3), np.float32)
+    extent = np.full((frames, k_max, 4), -1.0, np.float32)
+    bodies = [scene.body(name) for name in truth.names]
     for t in range(frames):
         if t:
             sim.advance(dt)
         images[t] = sim.render(camera.name).rgb
-        for k, name in enumerate(truth.names):
-            world[t, k] = sim.get_pose(name)[0]
+        for k, body in enumerate(bodies):
+            pos, quat = sim.get_pose(body.name)
+            world[t, k] = pos
+            uv = camera.project(body.outline(pos, quat))
+            extent[t, k] = (*uv.min(axis=0), *uv.max(axis=0))
     n = len(truth.names)
     pixels = np.full((frames, k_max, 2), -1.0, np.float32)
     pixels[:, :n] = camera.project(world[:, :n].reshape(-1, 3)).reshape(frames, n, 2)
     pad = lambda values, fill: np.array(list(values) + [fill] * (k_max - len(values)))  # noqa: E731
-    return {"frames": images, "positions": world, "pixels": pixels, "present": pad([1] * n, 0).astype(np.uint8),
+    return {"frames": images, "positions": world, "pixels": pixels, "extent": extent, "present": pad([1] * n, 0).astype(np.uint8),
             "shape": pad(truth.shapes or [0] * n, -1).astype(np.int8),
             "colour": pad(truth.colours or list(range(n)), -1).astype(np.int8),
             "size": pad(truth.sizes or [0.0] * n, 0.0).astype(np.float32),
@@ -93,7 +103,7 @@ def generate(ctx: Context, unit: Unit) -> tuple[dict[str, np.ndarray], dict[str,
     try:
         for k in range(unit.count):
             rng = np.random.default_rng([unit.seed, k])
-            scene, truth, velocities = draw_scene(ctx, rng)
+            scene, truth, velocities = draw_scene(ctx, rng, unit.split)
             if sim is None:
                 sim = ctx.make_sim(scene)
             else:

@@ -8,6 +8,9 @@ model and the same latents:
   cannot be downloaded here). The distance between the real training and test frames is its floor;
 * physical plausibility (balls-in-bowl): the share of scenes with both balls seen, inside the bowl and
   not interpenetrating, read off the images (``measure.Detector``; its rate on real test frames too);
+  (shapestacks) the share of towers whose blocks, as the tower reader reads them off the image, rest on
+  each other and that Lemma 1 (the stability plugin's, through the registry) calls stable as seen
+  (``measure.tower_plausibility``; the reader's rates on held-out real stable and unstable towers beside it);
 * Table 5.A.1's toggle score: the median distance in pixels from the pixel that changes most when an
   object is left out to that object's pose (lower: each latent object is the thing drawn where it says).
 """
@@ -36,13 +39,50 @@ FIELDS = ("frames", "pixels", "present", "bowl")
 TRUTH_FRAMES = 8000  # training frames the ground-truth regressor learns from
 
 
-def frame_truth(arrays: dict[str, np.ndarray], data_size: int, size: int, balls: bool) -> np.ndarray:
+def frame_truth(arrays: dict[str, np.ndarray], data_size: int, size: int, scene: str) -> np.ndarray:
     """Per frame the ground-truth targets of ``measure.truth_targets`` at the model's image size."""
     t = arrays["frames"].shape[1]
     pixels = arrays["pixels"].reshape(-1, *arrays["pixels"].shape[2:]) * size / data_size
     present = np.repeat(arrays["present"], t, axis=0)
-    bowl = np.repeat(arrays["bowl"], t, axis=0) if balls else None
+    bowl = np.repeat(arrays["bowl"], t, axis=0) if scene == "balls-in-bowl" else None
     return measure.truth_targets(pixels, present, size, bowl)
+
+
+TOWER_FIELDS = ("frames", "extent", "present")
+READER_HELD_OUT = 0.2  # the share of the unstable towers kept to check the tower reader
+
+
+def tower_check(ctx: Context, root: Path, size: int, data_size: int, real_test: torch.Tensor, test_pick: torch.Tensor):
+    """The tower reader (a TruthNet reading each block's box, trained once on the real training towers and 80 %
+    of the unstable ones, kept beside the dataset) with Lemma 1 through the registry; the real rows: the
+    held-out stable test towers and unstable towers as read, and the test towers' simulated boxes.
+    Returns (read(images) -> tower_plausibility, real rows)."""
+    from physint_cli.plugins import get_plugins
+
+    lemma1 = get_plugins().metric("lemma1_side_view", "stability").fn  # Lemma 1 (Eq. 3.1), through the registry
+    try:
+        unstable = load_split(root, "unstable", TOWER_FIELDS)
+    except BadInput:
+        raise BadInput(f"{root} has no unstable towers to check the tower reader with: generate it again with "
+                       "--set data.unstable=1000 (physint dataset relate --scene shapestacks)") from None
+    cut = int(round(len(unstable["present"]) * (1 - READER_HELD_OUT)))
+    boxes = lambda a: measure.box_targets(a["extent"][:, 0] * size / data_size, a["present"], size)  # noqa: E731
+    unstable_frames = real_frames(unstable, size)
+    train = load_split(root, "train", TOWER_FIELDS)
+    keep = torch.randperm(len(train["present"]), generator=torch.Generator().manual_seed(4))[:TRUTH_FRAMES - cut]
+    images = torch.cat([real_frames({"frames": train["frames"][keep.numpy()]}, size), unstable_frames[:cut]])
+    targets = np.concatenate([boxes(train)[keep.numpy()], boxes(unstable)[:cut]])
+    path = root / "features" / f"towernet-{size}px-{ctx.config.eval.features_epochs}ep.pt"
+    net = cached_truth_net(path, images, targets, ctx.config.eval.features_epochs, ctx.log, "real towers, stable and not")
+    read = lambda x: measure.tower_plausibility(  # noqa: E731
+        measure.tower_boxes(measure.embed(net, x, read_out=True), size), lemma1, size)
+    test = load_split(root, "test", TOWER_FIELDS)
+    rows = {"test towers, read": read(real_test[test_pick]),
+            "unstable towers (held out), read": read(unstable_frames[cut:]),
+            "test towers, simulated boxes": measure.tower_plausibility(
+                measure.tower_boxes(boxes(test)[test_pick.numpy()], size), lemma1, size)}
+    return read, rows
+
 
 
 def truth_net(root: Path, frames: torch.Tensor, targets: np.ndarray, size: int, epochs: int, log) -> measure.TruthNet:
@@ -85,9 +125,7 @@ def generate(generator, latents: dict[str, torch.Tensor], use_relation: bool, ba
 
 
 def truth_error(net: measure.TruthNet, frames: torch.Tensor, targets: np.ndarray) -> float:
-    with torch.no_grad():
-        pred = net(frames.float() / 127.5 - 1).numpy()
-    return float(np.sqrt(((pred - targets) ** 2).mean()))
+    return float(np.sqrt(((measure.embed(net, frames, read_out=True) - targets) ** 2).mean()))
 
 
 def table(results: dict[str, Any], arm: str, balls: bool) -> str:
@@ -96,17 +134,28 @@ def table(results: dict[str, Any], arm: str, balls: bool) -> str:
              "| toggle px (thesis at 128 px) |", "|---|---|---|---|---|---|"]
     for name, r in results["generated"].items():
         thesis = THESIS_FID.get(arm, "-") if balls and name == "Gamma" else "-"
-        plaus = f"{100 * r['plausibility']['plausible']:.1f}" if r.get("plausibility") else "-"
+        plaus = f"{100 * r['plausibility']['plausible']:.1f}" if r.get("plausibility") else \
+            f"{100 * r['towers']['plausible']:.1f}" if r.get("towers") else "-"
         toggle = f"{results['toggle_px']:.1f} ({THESIS_TOGGLE.get(arm, '-')})" if name == "Gamma" else "-"
         lines.append(f"| {name} ({arm}) | {r['fd_truth']:.2f} | {fid(r)} | {thesis} | {plaus} | {toggle} |")
     real = results["real"]
-    plaus = f"{100 * real['plausibility']['plausible']:.1f}" if real.get("plausibility") else "-"
+    plaus = f"{100 * real['plausibility']['plausible']:.1f}" if real.get("plausibility") else \
+        f"{100 * real['towers']['test towers, read']['plausible']:.1f}" if real.get("towers") else "-"
     lines.append(f"| real training frames (the floor) | {real['fd_truth']:.2f} | {fid(real)} | - | {plaus} | - |")
+    if "towers" in real:
+        lines.append("\nplausible towers (each block's box as the tower reader reads it, or as simulated): "
+                     + "; ".join(f"{name} {100 * t['plausible']:.1f} % (rest {100 * t['resting']:.1f} %, Lemma 1 "
+                                 f"{100 * t['stable']:.1f} %)" for name, t in towers_of(results)))
     if "decomposition" in results:
         d = results["decomposition"]
         lines.append(f"\nbackground alone shows no ball: {100 * d['background_without_balls']:.1f} %; one object alone shows "
                      f"one ball: {100 * d['one_object_one_ball']:.1f} %")
     return "\n".join(lines) + "\n\nFD-truth: Fréchet distance on the in-project ground-truth regressor's features (not FID)\n"
+
+
+def towers_of(results: dict[str, Any]) -> list[tuple[str, dict]]:
+    rows = [(name, r["towers"]) for name, r in results["generated"].items() if "towers" in r]
+    return rows + [(f"real {name}", r) for name, r in results["real"]["towers"].items()]
 
 
 # -- the video model (Section 5.4.3): FVD-truth beside the time-shuffled baseline ---------------------------------
@@ -240,13 +289,13 @@ def evaluate(ctx: Context) -> dict[str, Any]:
     if g.video:
         return evaluate_video(ctx, model, meta, root)
     scene, size = meta["scene"], int(meta["size"])
-    balls = scene == "balls-in-bowl"
+    balls, towers = scene == "balls-in-bowl", scene == "shapestacks"
     data_cfg = dataset_header(root)["config"]["data"]
     data_size = int(data_cfg["size"])
     train, test = load_split(root, "train", FIELDS), load_split(root, "test", FIELDS)
     train_frames, real_test = real_frames(train, size), real_frames(test, size)
     inception = INCEPTION.open(cfg.inception, real_test[:2]) if cfg.inception else None
-    net = truth_net(root, train_frames, frame_truth(train, data_size, size, balls), size, cfg.features_epochs, ctx.log)
+    net = truth_net(root, train_frames, frame_truth(train, data_size, size, scene), size, cfg.features_epochs, ctx.log)
     pick = torch.randperm(len(real_test), generator=torch.Generator().manual_seed(1))[:cfg.samples]
     nets = {"fd_truth": (lambda x: measure.embed(net, x), real_test)}
     if inception:  # FID against the evaluated test frames, not all of them (the Inception is costly on a CPU)
@@ -255,10 +304,13 @@ def evaluate(ctx: Context) -> dict[str, Any]:
     floor_pick = torch.randperm(len(train_frames), generator=torch.Generator().manual_seed(2))[:cfg.samples]
     real_train = train_frames[floor_pick]
     detector = measure.Detector(size, int(data_cfg["balls"])) if balls else None
-    results: dict[str, Any] = {"real": {**distances(real_train),
-                                        "truth_rmse": truth_error(net, real_test[pick], frame_truth(test, data_size, size, balls)[pick.numpy()])}}
+    test_truth = frame_truth(test, data_size, size, scene)[pick.numpy()]
+    results: dict[str, Any] = {"real": {**distances(real_train), "truth_rmse": truth_error(net, real_test[pick], test_truth)}}
+    read_towers = None
     if detector:
         results["real"]["plausibility"] = measure.plausibility(real_test[pick].permute(0, 2, 3, 1).numpy(), detector)
+    if towers:
+        read_towers, results["real"]["towers"] = tower_check(ctx, root, size, data_size, real_test, pick)
     counts = meta.get("counts", [g.objects, g.objects])
     gen = torch.Generator().manual_seed(ctx.seed)
     present = present_mask(cfg.samples, counts[0], counts[1], g.objects, gen)
@@ -271,11 +323,14 @@ def evaluate(ctx: Context) -> dict[str, Any]:
         r: dict[str, Any] = distances(images)
         if detector:
             r["plausibility"] = measure.plausibility(to_uint8(images), detector)
+        if read_towers:
+            r["towers"] = read_towers(images)
         results["generated"][name] = r
         grid = image_grid(images[:32])
         iio.imwrite(ctx.output().artifact(f"samples_{name.replace(' ', '_').lower()}.png"), grid)
         ctx.log(f"{name}: FD-truth {r['fd_truth']:.2f}" + (f", plausible {100 * r['plausibility']['plausible']:.1f} %"
-                                                             if detector else ""))
+                                                             if detector else "")
+                + (f", plausible towers {100 * r['towers']['plausible']:.1f} %" if read_towers else ""))
     if detector:
         results["decomposition"] = measure.decomposition(g, {k: v[:200] for k, v in latents.items()}, detector)
     objects = cfg.toggle_objects or (g.objects if g.fixed_objects else 5)

@@ -9,6 +9,11 @@
   (a heat map of object centres, and for balls-in-bowl each ball's position and the bowl's shape). The
   Fréchet distance on its penultimate features is "FD-truth": like FID, but on features of a network
   that knows these scenes, trained here, so it needs no downloaded weights. It is not FID.
+* ``tower_plausibility``: ShapeStacks' physical plausibility read off an image: each block's box, bottom up,
+  read by a TruthNet (the tower reader) trained on real stable and unstable towers, every block resting on
+  the one below, and Lemma 1 (the stability plugin's ``lemma1_side_view`` metric, through the registry)
+  calling the tower as seen stable. The reader's own rates on held-out real stable and unstable towers
+  say how far to trust it.
 * ``frechet``: the Fréchet distance between two Gaussians fitted to feature sets (Heusel et al. 2017).
 * ``toggle_distance``: Table 5.A.1's disentanglement proxy: remove object i from a generated scene, find
   the pixel that changes most, and measure its distance to where the object's pose says it is.
@@ -174,14 +179,54 @@ def fit_truth_net(images: torch.Tensor, targets: np.ndarray, epochs: int, batch:
 
 
 @torch.no_grad()
-def embed(net: TruthNet, images: torch.Tensor, batch: int = 256) -> np.ndarray:
-    """Features of images in [-1, 1] (float) or uint8."""
+def embed(net: TruthNet, images: torch.Tensor, batch: int = 256, read_out: bool = False) -> np.ndarray:
+    """Features of images in [-1, 1] (float) or uint8; with ``read_out`` the network's ground truth read off them."""
     out = []
     for start in range(0, len(images), batch):
         x = images[start:start + batch]
         x = x.float() / 127.5 - 1 if x.dtype == torch.uint8 else x
-        out.append(net.embed(x).numpy())
+        out.append((net(x) if read_out else net.embed(x)).numpy())
     return np.concatenate(out).astype(np.float64)
+
+
+# -- ShapeStacks: Lemma 1 on the towers the images show -----------------------------------------------------------
+
+def box_targets(extent: np.ndarray, present: np.ndarray, image_size: int) -> np.ndarray:
+    """The tower reader's (N, 5 K) targets: per slot (bottom up) whether a block is there and its pixel box
+    (``extent``: u_min, v_min, u_max, v_max at ``image_size`` px) in [-1, 1]."""
+    boxes = np.where(present[..., None] > 0, extent / image_size * 2 - 1, 0.0)
+    return np.concatenate([present[..., None], boxes], axis=2).reshape(len(present), -1).astype(np.float32)
+
+
+def tower_boxes(rows: np.ndarray, size: int) -> list[np.ndarray]:
+    """Per row of ``box_targets`` (or the tower reader's reading of them), the tower's blocks bottom up as pixel
+    boxes (n, 4): the slots read as present (> 0.5) up to the first that is not."""
+    out = []
+    for r in rows.reshape(len(rows), -1, 5):
+        n = int(np.argmin(np.r_[r[:, 0] > 0.5, False]))
+        out.append((r[:n, 1:] + 1) / 2 * size)
+    return out
+
+
+def tower_plausibility(towers: list[np.ndarray], lemma1, size: int, drawn: np.ndarray | None = None) -> dict[str, float]:
+    """The share of towers that rest (each block's bottom within 1/32 of the image of the top of the block below,
+    and not sunk deeper than that block's height: the real towers' boxes overlap by 0.3-9 px at 32 px, the top
+    faces being seen from above), that Lemma 1 calls stable as seen (``lemma1``: the stability plugin's
+    ``lemma1_side_view``, on each block's (centre, width, height)), and both; the mean number of blocks read,
+    and with ``drawn`` (blocks per generated scene) the share read with as many blocks as sampled."""
+    tol = size / 32
+    resting, stable = [], []
+    for b in towers:
+        heights = b[:, 3] - b[:, 1]
+        overlap = b[1:, 3] - b[:-1, 1]  # upper block's bottom below the lower's top
+        resting.append(bool(len(b) and np.all((overlap >= -tol) & (overlap <= heights[:-1]))))
+        stable.append(bool(len(b) and lemma1([((u0 + u1) / 2, u1 - u0, v1 - v0) for u0, v0, u1, v1 in b])["stable"]))
+    resting_, stable_ = np.array(resting), np.array(stable)
+    out = {"plausible": float(np.mean(resting_ & stable_)), "stable": float(stable_.mean()),
+           "resting": float(resting_.mean()), "blocks": float(np.mean([len(b) for b in towers]))}
+    if drawn is not None:
+        out["blocks_as_drawn"] = float(np.mean([len(b) == n for b, n in zip(towers, drawn)]))
+    return out
 
 
 def frechet(a: np.ndarray, b: np.ndarray) -> float:

@@ -218,12 +218,13 @@ def clevr_scene(rng: np.random.Generator, count: int, size: int) -> tuple[Scene,
 
 # -- ShapeStacks, through the stability plugin's registered scene -----------------------------------------------
 
-def stack_scene(build, seed: int, height: int, size: int, randomise: bool) -> tuple[Scene, Truth]:
-    """A stable ShapeStacks tower of ``height`` objects (``build`` is the stability plugin's registered
-    scene builder; ``randomise``: its random textures and colours) seen by its first camera, ``front``."""
+def stack_scene(build, seed: int, height: int, size: int, randomise: bool, kind: str = "stable") -> tuple[Scene, Truth]:
+    """A ShapeStacks tower of ``height`` objects, of Lemma 1's ``kind`` (stable, or VCOM for the evaluation's
+    tower reader), (``build`` is the stability plugin's registered scene builder; ``randomise``: its random
+    textures and colours) seen by its first camera, ``front``."""
     import dataclasses
 
-    scene, scenario = build(seed=seed, height=height, kind="stable", cameras=1, resolution=size, randomise=randomise)
+    scene, scenario = build(seed=seed, height=height, kind=kind, cameras=1, resolution=size, randomise=randomise)
     scene.cameras = [dataclasses.replace(scene.cameras[0], name="front")]
     names = [b.name for b in scene.bodies if not b.static][:height]
     return scene, Truth(names=names, sizes=[float(max(o.size)) for o in scenario.objects])
