@@ -95,18 +95,20 @@ def matrix_quat(m: np.ndarray) -> np.ndarray:
 def shrunk_hull(vertices: np.ndarray, margin: float) -> tuple[np.ndarray, np.ndarray]:
     """Vertices and triangles of the convex hull of ``vertices`` with every face moved ``margin`` inwards.
 
-    A hull thinner than twice the margin is returned unshrunk.
+    A hull thinner than twice the margin, or so thin that its shrunk copy is flat, is returned unshrunk.
     """
-    from scipy.spatial import ConvexHull, HalfspaceIntersection
+    from scipy.spatial import ConvexHull, HalfspaceIntersection, QhullError
 
     hull = ConvexHull(vertices)
     planes = hull.equations.copy()  # rows (n, d): n . x + d <= 0 inside, |n| = 1
     planes[:, 3] += margin  # each face plane moved inwards by the margin
     centre = vertices[hull.vertices].mean(axis=0)
     if np.max(planes[:, :3] @ centre + planes[:, 3]) < -1e-9:  # still strictly inside: shrinkable
-        points = HalfspaceIntersection(planes, centre).intersections
-        shrunk = ConvexHull(points)
-        return points, shrunk.simplices
+        try:
+            points = HalfspaceIntersection(planes, centre).intersections
+            return points, ConvexHull(points).simplices
+        except QhullError:  # the shrunk hull is (nearly) flat: no thicker than twice the margin after all
+            pass
     return vertices, hull.simplices
 
 
