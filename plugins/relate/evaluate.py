@@ -52,7 +52,8 @@ TOWER_FIELDS = ("frames", "extent", "present")
 READER_HELD_OUT = 0.2  # the share of the unstable towers kept to check the tower reader
 
 
-def tower_check(ctx: Context, root: Path, size: int, data_size: int, real_test: torch.Tensor, test_pick: torch.Tensor):
+def tower_check(ctx: Context, root: Path, size: int, data_size: int, train: dict, test: dict, train_frames: torch.Tensor,
+                real_test: torch.Tensor, test_pick: torch.Tensor):
     """The tower reader (a TruthNet reading each block's box, trained once on the real training towers and 80 %
     of the unstable ones, kept beside the dataset) with Lemma 1 through the registry; the real rows: the
     held-out stable test towers and unstable towers as read, and the test towers' simulated boxes.
@@ -68,21 +69,18 @@ def tower_check(ctx: Context, root: Path, size: int, data_size: int, real_test: 
     cut = int(round(len(unstable["present"]) * (1 - READER_HELD_OUT)))
     boxes = lambda a: measure.box_targets(a["extent"][:, 0] * size / data_size, a["present"], size)  # noqa: E731
     unstable_frames = real_frames(unstable, size)
-    train = load_split(root, "train", TOWER_FIELDS)
     keep = torch.randperm(len(train["present"]), generator=torch.Generator().manual_seed(4))[:TRUTH_FRAMES - cut]
-    images = torch.cat([real_frames({"frames": train["frames"][keep.numpy()]}, size), unstable_frames[:cut]])
+    images = torch.cat([train_frames[keep], unstable_frames[:cut]])
     targets = np.concatenate([boxes(train)[keep.numpy()], boxes(unstable)[:cut]])
     path = root / "features" / f"towernet-{size}px-{ctx.config.eval.features_epochs}ep.pt"
     net = cached_truth_net(path, images, targets, ctx.config.eval.features_epochs, ctx.log, "real towers, stable and not")
     read = lambda x: measure.tower_plausibility(  # noqa: E731
         measure.tower_boxes(measure.embed(net, x, read_out=True), size), lemma1, size)
-    test = load_split(root, "test", TOWER_FIELDS)
     rows = {"test towers, read": read(real_test[test_pick]),
             "unstable towers (held out), read": read(unstable_frames[cut:]),
             "test towers, simulated boxes": measure.tower_plausibility(
                 measure.tower_boxes(boxes(test)[test_pick.numpy()], size), lemma1, size)}
     return read, rows
-
 
 
 def truth_net(root: Path, frames: torch.Tensor, targets: np.ndarray, size: int, epochs: int, log) -> measure.TruthNet:
@@ -134,13 +132,11 @@ def table(results: dict[str, Any], arm: str, balls: bool) -> str:
              "| toggle px (thesis at 128 px) |", "|---|---|---|---|---|---|"]
     for name, r in results["generated"].items():
         thesis = THESIS_FID.get(arm, "-") if balls and name == "Gamma" else "-"
-        plaus = f"{100 * r['plausibility']['plausible']:.1f}" if r.get("plausibility") else \
-            f"{100 * r['towers']['plausible']:.1f}" if r.get("towers") else "-"
+        plaus = plausible_cell(r.get("plausibility") or r.get("towers"))
         toggle = f"{results['toggle_px']:.1f} ({THESIS_TOGGLE.get(arm, '-')})" if name == "Gamma" else "-"
         lines.append(f"| {name} ({arm}) | {r['fd_truth']:.2f} | {fid(r)} | {thesis} | {plaus} | {toggle} |")
     real = results["real"]
-    plaus = f"{100 * real['plausibility']['plausible']:.1f}" if real.get("plausibility") else \
-        f"{100 * real['towers']['test towers, read']['plausible']:.1f}" if real.get("towers") else "-"
+    plaus = plausible_cell(real.get("plausibility") or real.get("towers", {}).get("test towers, read"))
     lines.append(f"| real training frames (the floor) | {real['fd_truth']:.2f} | {fid(real)} | - | {plaus} | - |")
     if "towers" in real:
         lines.append("\nplausible towers (each block's box as the tower reader reads it, or as simulated): "
@@ -151,6 +147,10 @@ def table(results: dict[str, Any], arm: str, balls: bool) -> str:
         lines.append(f"\nbackground alone shows no ball: {100 * d['background_without_balls']:.1f} %; one object alone shows "
                      f"one ball: {100 * d['one_object_one_ball']:.1f} %")
     return "\n".join(lines) + "\n\nFD-truth: Fréchet distance on the in-project ground-truth regressor's features (not FID)\n"
+
+
+def plausible_cell(rates: dict | None) -> str:
+    return f"{100 * rates['plausible']:.1f}" if rates else "-"
 
 
 def towers_of(results: dict[str, Any]) -> list[tuple[str, dict]]:
@@ -292,7 +292,8 @@ def evaluate(ctx: Context) -> dict[str, Any]:
     balls, towers = scene == "balls-in-bowl", scene == "shapestacks"
     data_cfg = dataset_header(root)["config"]["data"]
     data_size = int(data_cfg["size"])
-    train, test = load_split(root, "train", FIELDS), load_split(root, "test", FIELDS)
+    fields = FIELDS + ("extent",) if towers else FIELDS
+    train, test = load_split(root, "train", fields), load_split(root, "test", fields)
     train_frames, real_test = real_frames(train, size), real_frames(test, size)
     inception = INCEPTION.open(cfg.inception, real_test[:2]) if cfg.inception else None
     net = truth_net(root, train_frames, frame_truth(train, data_size, size, scene), size, cfg.features_epochs, ctx.log)
@@ -310,7 +311,8 @@ def evaluate(ctx: Context) -> dict[str, Any]:
     if detector:
         results["real"]["plausibility"] = measure.plausibility(real_test[pick].permute(0, 2, 3, 1).numpy(), detector)
     if towers:
-        read_towers, results["real"]["towers"] = tower_check(ctx, root, size, data_size, real_test, pick)
+        read_towers, results["real"]["towers"] = tower_check(ctx, root, size, data_size, train, test, train_frames,
+                                                                real_test, pick)
     counts = meta.get("counts", [g.objects, g.objects])
     gen = torch.Generator().manual_seed(ctx.seed)
     present = present_mask(cfg.samples, counts[0], counts[1], g.objects, gen)

@@ -208,12 +208,11 @@ def tower_boxes(rows: np.ndarray, size: int) -> list[np.ndarray]:
     return out
 
 
-def tower_plausibility(towers: list[np.ndarray], lemma1, size: int, drawn: np.ndarray | None = None) -> dict[str, float]:
+def tower_plausibility(towers: list[np.ndarray], lemma1, size: int) -> dict[str, float]:
     """The share of towers that rest (each block's bottom within 1/32 of the image of the top of the block below,
     and not sunk deeper than that block's height: the real towers' boxes overlap by 0.3-9 px at 32 px, the top
     faces being seen from above), that Lemma 1 calls stable as seen (``lemma1``: the stability plugin's
-    ``lemma1_side_view``, on each block's (centre, width, height)), and both; the mean number of blocks read,
-    and with ``drawn`` (blocks per generated scene) the share read with as many blocks as sampled."""
+    ``lemma1_side_view``, on each block's (centre, width, height)), and both; and the mean number of blocks read."""
     tol = size / 32
     resting, stable = [], []
     for b in towers:
@@ -224,8 +223,6 @@ def tower_plausibility(towers: list[np.ndarray], lemma1, size: int, drawn: np.nd
     resting_, stable_ = np.array(resting), np.array(stable)
     out = {"plausible": float(np.mean(resting_ & stable_)), "stable": float(stable_.mean()),
            "resting": float(resting_.mean()), "blocks": float(np.mean([len(b) for b in towers]))}
-    if drawn is not None:
-        out["blocks_as_drawn"] = float(np.mean([len(b) == n for b, n in zip(towers, drawn)]))
     return out
 
 
